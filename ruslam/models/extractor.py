@@ -1,0 +1,130 @@
+"""The one extractor contract of the project (hloc/LightGlue style) and its shared conventions.
+
+Every extractor (ORB, SIFT, XFeat, SuperPoint, UWNet) subclasses `Extractor`: a `default_conf` dict merged with
+keyword overrides, and `extract(image) -> dict` with stable keys:
+
+- ``keypoints``  float32 [N, 2], (x, y) in pixels of the *input* image, pixel centres at integer coordinates;
+- ``scores``     float32 [N];
+- ``descriptors`` [N, D], float32 L2-normalized, or uint8 packed bits for binary descriptors (ORB);
+- ``global_descriptor`` float32 [G] L2-normalized, only for extractors that have a global head.
+
+Dense descriptor maps at stride ``s`` are sampled at keypoints with the convention
+``(kp + 0.5) / s - 0.5`` and ``align_corners=False`` (`sample_descriptors`), used everywhere in the project.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+class Extractor:
+    default_conf: dict = {}
+    #: True when descriptors are packed binary strings matched by Hamming distance.
+    binary: bool = False
+
+    def __init__(self, **conf):
+        unknown = set(conf) - set(self.default_conf)
+        if unknown:
+            raise ValueError(
+                f"{type(self).__name__} got unknown option(s) {sorted(unknown)}; "
+                f"expected some of {sorted(self.default_conf)}."
+            )
+        self.conf = {**self.default_conf, **conf}
+
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        raise NotImplementedError
+
+    def __call__(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        return self.extract(image)
+
+
+def check_image(image) -> np.ndarray:
+    """Validate an input image: HxW or HxWx3 (RGB), uint8 or float in [0, 1]; returns it unchanged."""
+    if not isinstance(image, np.ndarray):
+        raise TypeError(f"image must be a numpy array, got {type(image).__name__}.")
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3)):
+        raise ValueError(f"image must be HxW or HxWx3, got shape {image.shape}.")
+    if image.dtype != np.uint8 and not np.issubdtype(image.dtype, np.floating):
+        raise ValueError(f"image must be uint8 or float in [0, 1], got dtype {image.dtype}.")
+    if min(image.shape[:2]) < 16:
+        raise ValueError(f"image must be at least 16x16 pixels, got {image.shape[:2]}.")
+    return image
+
+
+def to_float_rgb(image: np.ndarray) -> np.ndarray:
+    """HxWx3 float32 RGB in [0, 1] from any accepted input (grey is replicated)."""
+    image = check_image(image)
+    out = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32)
+    if out.ndim == 2:
+        out = out[..., None]
+    if out.shape[2] == 1:
+        out = np.repeat(out, 3, axis=2)
+    return out
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """HxW float32 grey in [0, 1] (ITU-R BT.601 weights 0.299, 0.587, 0.114)."""
+    rgb = to_float_rgb(image)
+    return rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def to_uint8_gray(image: np.ndarray) -> np.ndarray:
+    return np.clip(to_gray(image) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def sample_dense(dense: torch.Tensor, keypoints: torch.Tensor, stride: float) -> torch.Tensor:
+    """Bilinearly sample a dense map [B, D, h, w] at pixel keypoints [B, N, 2] -> [B, N, D].
+
+    Feature cell i covers pixels [i*s, (i+1)*s), so its centre is at pixel i*s + (s-1)/2, i.e. pixel x maps
+    to feature coordinate (x + 0.5) / s - 0.5 with align_corners=False.
+    """
+    _, _, h, w = dense.shape
+    size = keypoints.new_tensor([w * stride, h * stride])
+    grid = (keypoints + 0.5) / size * 2.0 - 1.0
+    out = F.grid_sample(dense, grid[:, None], mode="bilinear", padding_mode="border", align_corners=False)
+    return out[:, :, 0].transpose(1, 2)
+
+
+def sample_descriptors(dense: torch.Tensor, keypoints: torch.Tensor, stride: float) -> torch.Tensor:
+    """`sample_dense` followed by L2 normalization: the descriptors of keypoints [B, N, 2] -> [B, N, D]."""
+    return F.normalize(sample_dense(dense, keypoints, stride), dim=-1)
+
+
+def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
+    """Keep only local maxima within a (2r+1)^2 window: scores [B, H, W] -> same with non-maxima zeroed."""
+    if radius <= 0:
+        return scores
+    pooled = F.max_pool2d(scores[:, None], kernel_size=2 * radius + 1, stride=1, padding=radius)[:, 0]
+    return torch.where(scores == pooled, scores, torch.zeros_like(scores))
+
+
+def cell_logits_to_heatmap(logits: torch.Tensor, cell: int = 8) -> torch.Tensor:
+    """SuperPoint cell layout: [B, cell^2+1, h, w] logits -> [B, h*cell, w*cell] keypoint probability."""
+    prob = logits.softmax(dim=1)[:, :-1]
+    return F.pixel_shuffle(prob, cell)[:, 0]
+
+
+def detect_keypoints(
+    heatmap: torch.Tensor, nms_radius: int, threshold: float, max_keypoints: int, border: int
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """NMS, border removal, threshold, top-k on a heatmap [B, H, W] -> per image (keypoints [N,2] xy, scores)."""
+    heat = simple_nms(heatmap, nms_radius)
+    if border > 0:
+        heat[:, :border] = 0
+        heat[:, -border:] = 0
+        heat[:, :, :border] = 0
+        heat[:, :, -border:] = 0
+    out = []
+    for h in heat:
+        ys, xs = torch.nonzero(h > threshold, as_tuple=True)
+        scores = h[ys, xs]
+        if max_keypoints and scores.numel() > max_keypoints:
+            scores, idx = scores.topk(max_keypoints)
+            ys, xs = ys[idx], xs[idx]
+        else:
+            scores, idx = scores.sort(descending=True)
+            ys, xs = ys[idx], xs[idx]
+        out.append((torch.stack([xs, ys], dim=-1).float(), scores))
+    return out

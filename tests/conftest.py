@@ -1,0 +1,27 @@
+"""Shared test fixtures: the optional real-data folder and a composed-config helper."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The optional ../shared/data folder of real samples; tests using it skip when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip("../shared/data is absent (optional real-data samples)")
+    return SHARED_DATA
+
+
+def compose(config_name: str, overrides: list[str]):
+    """Compose a Hydra config from conf/ as the entry points do (no run directory)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return hydra_compose(config_name=config_name, overrides=overrides, return_hydra_config=False)
