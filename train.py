@@ -2,7 +2,6 @@
 
 import hydra
 from omegaconf import DictConfig
-
 from ruslam.train import train
 
 
