@@ -11,6 +11,7 @@ from ruslam.models.extractor import Extractor
 EXTRACTORS = {
     "orb": "ruslam.models.classical:ORB",
     "sift": "ruslam.models.classical:SIFT",
+    "xfeat": "ruslam.models.teachers.xfeat:XFeat",
 }
 
 
