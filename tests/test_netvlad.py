@@ -1,0 +1,58 @@
+import pytest
+import torch
+import torch.nn.functional as F
+
+from ruslam.models.netvlad import NetVLAD
+
+
+def reference_netvlad(x, weight, bias, centroids):
+    """Loop-per-cluster NetVLAD written from the paper's equation, for one image [C, h, w]."""
+    feats = F.normalize(x.flatten(1).T, dim=1)  # [N, C]
+    logits = feats @ weight.T + bias  # [N, K]
+    a = logits.softmax(dim=1)
+    blocks = []
+    for k in range(len(centroids)):
+        v = (a[:, k : k + 1] * (feats - centroids[k])).sum(0)
+        blocks.append(v / v.norm())
+    out = torch.cat(blocks)
+    return out / out.norm()
+
+
+def test_netvlad_matches_the_per_cluster_equation():
+    torch.manual_seed(0)
+    layer = NetVLAD(num_clusters=5, dim=12)
+    torch.nn.init.normal_(layer.conv.bias)
+    x = torch.randn(2, 12, 6, 7)
+    out = layer(x)
+    assert out.shape == (2, 60)
+    w, b = layer.conv.weight[:, :, 0, 0], layer.conv.bias
+    for i in range(2):
+        torch.testing.assert_close(out[i], reference_netvlad(x[i], w, b, layer.centroids), atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(out.norm(dim=1), torch.ones(2))
+    # intra-normalization: every cluster block has the same norm before the final L2
+    block_norms = out.view(2, 5, 12).norm(dim=2)
+    torch.testing.assert_close(block_norms, torch.full((2, 5), 5**-0.5), atol=1e-5, rtol=1e-4)
+
+
+def test_init_from_centroids_gives_hard_vlad_and_gradients_flow():
+    torch.manual_seed(1)
+    centres = F.normalize(torch.randn(3, 8), dim=1)
+    layer = NetVLAD(num_clusters=3, dim=8)
+    layer.init_from_centroids(centres, alpha=1000.0)
+    # 4 locations near centre 0, 2 near centre 2, none near centre 1
+    pts = torch.cat([centres[0] + 0.05 * torch.randn(4, 8), centres[2] + 0.05 * torch.randn(2, 8)])
+    x = pts.T.reshape(1, 8, 2, 3).clone().requires_grad_(True)
+    out = layer(x).view(3, 8)
+    unit = F.normalize(pts, dim=1)
+    expect0 = F.normalize((unit[:4] - centres[0]).sum(0), dim=0)
+    expect2 = F.normalize((unit[4:] - centres[2]).sum(0), dim=0)
+    scale = out[0].norm()
+    torch.testing.assert_close(out[0] / scale, expect0, atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(out[2] / out[2].norm(), expect2, atol=1e-3, rtol=1e-3)
+    layer(x).sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+
+
+def test_netvlad_rejects_wrong_channels():
+    with pytest.raises(ValueError, match=r"features \[B, 16, h, w\]"):
+        NetVLAD(4, 16)(torch.rand(1, 8, 4, 4))
