@@ -1,0 +1,104 @@
+"""Descriptor matching: kNN + ratio test (optionally mutual) and window search around projected points.
+
+Distances are Hamming bit counts for packed binary descriptors (ORB) and Euclidean for float descriptors; the
+dense case is one matrix product, the window case only scores the keypoint/point pairs that fall in a window
+(found with a k-d tree), so it costs O(pairs) instead of O(points x keypoints).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def descriptor_distances(a: np.ndarray, b: np.ndarray, binary: bool) -> np.ndarray:
+    """All pairwise distances [Na, Nb] (float32) between descriptor sets."""
+    if binary:
+        ba = np.unpackbits(a, axis=1).astype(np.float32)
+        bb = np.unpackbits(b, axis=1).astype(np.float32)
+        d = ba.sum(1)[:, None] + bb.sum(1)[None] - 2.0 * ba @ bb.T
+        return np.maximum(d, 0.0)
+    a = a.astype(np.float32, copy=False)
+    b = b.astype(np.float32, copy=False)
+    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * a @ b.T
+    return np.sqrt(np.maximum(d2, 0.0))
+
+
+def paired_distances(a: np.ndarray, b: np.ndarray, binary: bool) -> np.ndarray:
+    """Row-wise distances between two equally long descriptor sets [P, D] -> [P]."""
+    if binary:
+        return np.bitwise_count(np.bitwise_xor(a, b)).sum(1).astype(np.float32)
+    diff = a.astype(np.float32, copy=False) - b.astype(np.float32, copy=False)
+    return np.sqrt((diff * diff).sum(1))
+
+
+def match_knn_ratio(
+    desc1: np.ndarray, desc2: np.ndarray, binary: bool, max_distance: float, ratio: float = 0.8,
+    mutual: bool = True, mask: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (i1, i2) of matches desc1[i1] <-> desc2[i2]: 2-NN ratio test, distance gate, optional mutual NN.
+
+    `mask` [N1, N2] (bool) restricts the allowed pairs (e.g. an epipolar constraint).
+    """
+    empty = (np.zeros(0, int), np.zeros(0, int))
+    if len(desc1) == 0 or len(desc2) == 0:
+        return empty
+    d = descriptor_distances(desc1, desc2, binary)
+    if mask is not None:
+        d = np.where(mask, d, np.inf)
+    if d.shape[1] >= 2:
+        nn = np.argpartition(d, 1, axis=1)[:, :2]
+        d_nn = np.take_along_axis(d, nn, axis=1)
+        order = np.argsort(d_nn, axis=1)
+        nn = np.take_along_axis(nn, order, axis=1)
+        d_nn = np.take_along_axis(d_nn, order, axis=1)
+        best, d1, d2 = nn[:, 0], d_nn[:, 0], d_nn[:, 1]
+        keep = (d1 <= max_distance) & (d1 < ratio * d2)
+    else:
+        best, d1 = np.zeros(len(d), int), d[:, 0]
+        keep = d1 <= max_distance
+    if mutual:
+        keep &= np.argmin(d, axis=0)[best] == np.arange(len(d))
+    i1 = np.nonzero(keep)[0]
+    return i1, best[i1]
+
+
+def match_in_windows(
+    uv: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray, radius,
+    binary: bool, max_distance: float, ratio: float = 0.9, available: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Match projected points uv [M, 2] to keypoints [N, 2] inside a window of `radius` pixels (scalar or [M]).
+
+    Best candidate per point by descriptor distance, gated by `max_distance` and a ratio test against the second
+    candidate in the same window; each keypoint is given to at most one point (the closest in descriptor space).
+    `available` [N] bool masks keypoints already matched. Returns (point indices, keypoint indices).
+    """
+    empty = (np.zeros(0, int), np.zeros(0, int))
+    if len(uv) == 0 or len(keypoints) == 0:
+        return empty
+    radius = np.broadcast_to(np.asarray(radius, dtype=np.float64), (len(uv),))
+    kp_tree = cKDTree(keypoints)
+    pairs = cKDTree(uv).sparse_distance_matrix(kp_tree, float(radius.max()), output_type="ndarray")
+    ip, ik, dist_px = pairs["i"].astype(int), pairs["j"].astype(int), pairs["v"]
+    keep = dist_px <= radius[ip]
+    if available is not None:
+        keep &= available[ik]
+    ip, ik = ip[keep], ik[keep]
+    if len(ip) == 0:
+        return empty
+    dd = paired_distances(point_desc[ip], kp_desc[ik], binary)
+    order = np.lexsort((dd, ip))  # by point, then by descriptor distance
+    ip, ik, dd = ip[order], ik[order], dd[order]
+    first = np.ones(len(ip), bool)
+    first[1:] = ip[1:] != ip[:-1]
+    starts = np.nonzero(first)[0]
+    best_ip, best_ik, best_d = ip[starts], ik[starts], dd[starts]
+    has_second = np.append(starts[1:], len(ip)) - starts > 1
+    second_d = np.full(len(starts), np.inf, dtype=np.float32)
+    second_d[has_second] = dd[starts[has_second] + 1]
+    ok = (best_d <= max_distance) & (best_d < ratio * second_d)
+    best_ip, best_ik, best_d = best_ip[ok], best_ik[ok], best_d[ok]
+    order = np.argsort(best_d, kind="stable")  # one point per keypoint: the closest descriptor wins
+    _, unique = np.unique(best_ik[order], return_index=True)
+    sel = np.sort(order[unique])
+    return best_ip[sel], best_ik[sel]

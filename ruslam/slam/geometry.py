@@ -1,0 +1,234 @@
+"""Multi-view geometry on arrays: triangulation, two-view initialisation (H vs F), PnP, stereo, Sim3/SE3 RANSAC.
+
+Poses are 4x4 ``T_cw`` (world -> camera); pixels are undistorted, for the ideal pinhole ``K``. Every RANSAC takes a
+seed: OpenCV's global RNG is reseeded before each call and our own loops draw from ``numpy.random.default_rng``,
+so the synchronous mode reproduces a run exactly.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ruslam.slam.map import inverse_pose, transform
+
+CHI2_2DOF = 5.991  # 95% quantile of chi^2 with 2 degrees of freedom (reprojection error, sigma = 1 px)
+CHI2_1DOF = 3.841
+
+
+def pose_matrix(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = s * np.asarray(R)
+    T[:3, 3] = np.ravel(t)
+    return T
+
+
+def project(K: np.ndarray, T_cw: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] -> (pixels [N, 2], depth [N])."""
+    Xc = transform(T_cw, X)
+    z = Xc[:, 2]
+    safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    return (Xc[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], z
+
+
+def triangulate(K1, T1_cw, x1, K2, T2_cw, x2) -> np.ndarray:
+    """Linear (DLT) triangulation of matched pixels [N, 2] seen from two posed views -> world points [N, 3]."""
+    if len(x1) == 0:
+        return np.zeros((0, 3))
+    P1 = K1 @ T1_cw[:3]
+    P2 = K2 @ T2_cw[:3]
+    Xh = cv2.triangulatePoints(P1, P2, np.asarray(x1, np.float64).T, np.asarray(x2, np.float64).T)
+    w = Xh[3]
+    w = np.where(np.abs(w) < 1e-12, 1e-12, w)
+    return (Xh[:3] / w).T
+
+
+def triangulation_mask(X, K1, T1_cw, x1, K2, T2_cw, x2, max_error_px: float = 2.0, min_parallax_deg: float = 1.0):
+    """Points in front of both cameras, reprojecting within `max_error_px`, seen under enough parallax."""
+    u1, z1 = project(K1, T1_cw, X)
+    u2, z2 = project(K2, T2_cw, X)
+    ok = (z1 > 0) & (z2 > 0) & np.all(np.isfinite(X), axis=1)
+    ok &= np.sum((u1 - x1) ** 2, 1) < max_error_px**2
+    ok &= np.sum((u2 - x2) ** 2, 1) < max_error_px**2
+    r1 = X - inverse_pose(T1_cw)[:3, 3]
+    r2 = X - inverse_pose(T2_cw)[:3, 3]
+    cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
+    return ok & (cos < np.cos(np.deg2rad(min_parallax_deg)))
+
+
+# --- two-view initialisation -------------------------------------------------------------------------------------
+def _homography_score(H, x1, x2, sigma=1.0):
+    """ORB-SLAM's symmetric transfer score: sum over inliers of (chi2 threshold - error)."""
+    def err(Hm, a, b):
+        ah = np.c_[a, np.ones(len(a))] @ Hm.T
+        return np.sum((ah[:, :2] / ah[:, 2:3] - b) ** 2, 1) / sigma**2
+
+    e12, e21 = err(H, x1, x2), err(np.linalg.inv(H), x2, x1)
+    return np.sum(np.where(e12 < CHI2_2DOF, CHI2_2DOF - e12, 0) + np.where(e21 < CHI2_2DOF, CHI2_2DOF - e21, 0))
+
+
+def _fundamental_score(F, x1, x2, sigma=1.0):
+    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
+    l2, l1 = h1 @ F.T, h2 @ F  # epipolar lines in image 2 and image 1
+    num = np.sum(h2 * l2, 1) ** 2
+    e2 = num / np.maximum(l2[:, 0] ** 2 + l2[:, 1] ** 2, 1e-12) / sigma**2
+    e1 = num / np.maximum(l1[:, 0] ** 2 + l1[:, 1] ** 2, 1e-12) / sigma**2
+    # errors gated by the 1-dof threshold but scored against the 2-dof one, so H and F scores are comparable
+    return np.sum(np.where(e2 < CHI2_1DOF, CHI2_2DOF - e2, 0) + np.where(e1 < CHI2_1DOF, CHI2_2DOF - e1, 0))
+
+
+def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points):
+    """Pick the (R, t) that triangulates the most good points; refuse when two hypotheses are close."""
+    T1 = np.eye(4)
+    results = []
+    for R, t in candidates:
+        T2 = pose_matrix(R, np.ravel(t) / max(np.linalg.norm(t), 1e-12))
+        X = triangulate(K, T1, x1, K, T2, x2)
+        good = triangulation_mask(X, K, T1, x1, K, T2, x2, max_error_px=2.0, min_parallax_deg=0.0)
+        r1, r2 = X, X - inverse_pose(T2)[:3, 3]  # camera 1 sits at the origin
+        cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
+        parallax = np.rad2deg(np.arccos(np.clip(np.sort(cos[good])[::-1], -1, 1)))
+        par = parallax[min(49, len(parallax) - 1)] if len(parallax) else 0.0  # ORB: 50th smallest parallax
+        results.append((int(good.sum()), T2, X, good, par))
+    results.sort(key=lambda r: -r[0])
+    n_best, T2, X, good, par = results[0]
+    n_second = results[1][0] if len(results) > 1 else 0
+    if n_best < min_points or n_second > 0.7 * n_best or par < min_parallax_deg:
+        return None
+    return T2, X, good
+
+
+def two_view_initialization(
+    x1: np.ndarray, x2: np.ndarray, K: np.ndarray, seed: int = 0, min_parallax_deg: float = 1.0,
+    min_points: int = 50, homography_ratio: float = 0.45,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
+    """Monocular map initialisation from matches x1 <-> x2 (ORB-SLAM: score H and F, keep the better model).
+
+    Returns (T2_cw with camera 1 at the origin, world points [N, 3], valid mask [N], model name) with the scene
+    scaled to unit median depth in camera 1, or None when the geometry is not trustworthy (too little parallax,
+    ambiguous solutions, too few points).
+    """
+    if len(x1) < max(min_points, 8):
+        return None
+    x1 = np.asarray(x1, np.float64)
+    x2 = np.asarray(x2, np.float64)
+    cv2.setRNGSeed(seed)
+    H, _ = cv2.findHomography(x1, x2, cv2.RANSAC, 2.0, maxIters=500, confidence=0.999)
+    cv2.setRNGSeed(seed)
+    F, _ = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, 1.0, 0.999, 500)
+    s_h = _homography_score(H, x1, x2) if H is not None else 0.0
+    s_f = _fundamental_score(F[:3], x1, x2) if F is not None and F.shape[0] >= 3 else 0.0
+    if s_h + s_f <= 0:
+        return None
+    if s_h / (s_h + s_f) > homography_ratio:
+        model = "homography"
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
+        candidates = list(zip(Rs, ts, strict=True))
+    else:
+        model = "fundamental"
+        E = K.T @ F[:3] @ K
+        R1, R2, t = cv2.decomposeEssentialMat(E)
+        candidates = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
+    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points)
+    if best is None:
+        return None
+    T2, X, good = best
+    median_depth = np.median(X[good, 2])
+    if not median_depth > 0:
+        return None
+    X = X / median_depth
+    T2 = T2.copy()
+    T2[:3, 3] /= median_depth
+    return T2, X, good, model
+
+
+# --- absolute pose -----------------------------------------------------------------------------------------------
+def solve_pnp_ransac(
+    X: np.ndarray, x: np.ndarray, K: np.ndarray, seed: int = 0, max_error_px: float = 4.0, iterations: int = 200,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Camera pose T_cw from world points [N, 3] and their pixels [N, 2] (P3P RANSAC + inlier refinement)."""
+    if len(X) < 6:
+        return None
+    cv2.setRNGSeed(seed)
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        np.ascontiguousarray(X, np.float64), np.ascontiguousarray(x, np.float64), K, None,
+        iterationsCount=iterations, reprojectionError=max_error_px, confidence=0.999, flags=cv2.SOLVEPNP_AP3P,
+    )
+    if not ok or inliers is None or len(inliers) < 6:
+        return None
+    mask = np.zeros(len(X), bool)
+    mask[inliers.ravel()] = True
+    rvec, tvec = cv2.solvePnPRefineLM(X[mask].astype(np.float64), x[mask].astype(np.float64), K, None, rvec, tvec)
+    return pose_matrix(cv2.Rodrigues(rvec)[0], tvec), mask
+
+
+# --- stereo ------------------------------------------------------------------------------------------------------
+def fundamental_from_poses(K1, K2, T_21) -> np.ndarray:
+    """F with x2^T F x1 = 0 for cameras related by T_21 (camera 1 -> camera 2)."""
+    R, t = T_21[:3, :3], T_21[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
+
+
+def epipolar_distance(F, x1, x2) -> np.ndarray:
+    """Distance [N1, N2] of every x2 to the epipolar line of every x1, in pixels of image 2."""
+    lines = np.c_[x1, np.ones(len(x1))] @ F.T
+    num = lines[:, :2] @ x2.T + lines[:, 2:3]
+    return np.abs(num) / np.maximum(np.linalg.norm(lines[:, :2], axis=1, keepdims=True), 1e-12)
+
+
+# --- similarity / rigid alignment --------------------------------------------------------------------------------
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> np.ndarray:
+    """Least-squares S (4x4, sR|t) with dst ~ s R src + t (Umeyama 1991); rigid when with_scale is False."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    cov = b.T @ a / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    var = np.mean(np.sum(a * a, 1))
+    s = float(np.trace(np.diag(D) @ S) / var) if with_scale and var > 0 else 1.0
+    return pose_matrix(R, mu_d - s * R @ mu_s, s)
+
+
+def sim3_ransac(
+    P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray, K1: np.ndarray, K2: np.ndarray,
+    with_scale: bool = True, seed: int = 0, iterations: int = 300, max_error_px: float = 3.0, min_inliers: int = 20,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """S12 (camera 2 -> camera 1 similarity) from 3D-3D matches P1[i] <-> P2[i] in each camera's frame.
+
+    As in ORB-SLAM's Sim3Solver an inlier must reproject within `max_error_px` in both images: S12 P2 onto x1
+    and S12^-1 P1 onto x2. The winner is refitted on all its inliers.
+    """
+    n = len(P1)
+    if n < max(3, min_inliers):
+        return None
+    rng = np.random.default_rng(seed)
+    eye = np.eye(4)
+
+    def inliers(S):
+        u1, z1 = project(K1, eye, transform(S, P2))
+        u2, z2 = project(K2, eye, transform(inverse_pose(S), P1))
+        return (z1 > 0) & (z2 > 0) & (np.sum((u1 - x1) ** 2, 1) < max_error_px**2) & (
+            np.sum((u2 - x2) ** 2, 1) < max_error_px**2)
+
+    best_mask, best_S = None, None
+    for _ in range(iterations):
+        idx = rng.choice(n, 3, replace=False)
+        S = umeyama(P2[idx], P1[idx], with_scale)
+        if not np.all(np.isfinite(S)):
+            continue
+        mask = inliers(S)
+        if best_mask is None or mask.sum() > best_mask.sum():
+            best_mask, best_S = mask, S
+    if best_mask is None or best_mask.sum() < min_inliers:
+        return None
+    for _ in range(2):  # refit on inliers, re-classify
+        S = umeyama(P2[best_mask], P1[best_mask], with_scale)
+        mask = inliers(S)
+        if mask.sum() < best_mask.sum():
+            break
+        best_mask, best_S = mask, S
+    return best_S, best_mask

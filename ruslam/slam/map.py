@@ -1,0 +1,239 @@
+"""Plain map types: Frame, KeyFrame, MapPoint and the Map with its covisibility graph (ORB-SLAM's vocabulary).
+
+Poses are stored as ``T_cw`` (world -> camera 0), keypoints are undistorted pixel coordinates of the ideal pinhole
+``K`` of camera 0. A stereo frame also carries, per keypoint, the matched undistorted right-image coordinate and the
+stereo depth (NaN where the keypoint has no stereo match). The Map owns one re-entrant lock that the threaded mode
+takes around every mapping step; the synchronous mode never contends for it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ruslam.slam.feature_matching import descriptor_distances
+
+
+def inverse_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform (or a similarity sR|t)."""
+    A = T[:3, :3]
+    s2 = np.sum(A[:, 0] ** 2)  # s^2 for a similarity, 1 for a rigid transform
+    A_inv = A.T / s2
+    out = np.eye(4)
+    out[:3, :3] = A_inv
+    out[:3, 3] = -A_inv @ T[:3, 3]
+    return out
+
+
+def transform(T: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points [N, 3]."""
+    return X @ T[:3, :3].T + T[:3, 3]
+
+
+@dataclass(eq=False)
+class Frame:
+    index: int
+    timestamp: float
+    keypoints: np.ndarray  # [N, 2] undistorted pixels (camera 0)
+    descriptors: np.ndarray  # [N, D] float32 or uint8 packed bits
+    K: np.ndarray  # 3x3 ideal pinhole of camera 0
+    image_size: tuple[int, int]  # (width, height)
+    global_descriptor: np.ndarray | None = None
+    right: np.ndarray | None = None  # [N, 2] undistorted right pixels, NaN where no stereo match
+    depth: np.ndarray | None = None  # [N] stereo depth in camera 0, NaN where none
+    T_cw: np.ndarray | None = None
+    points: list = field(default_factory=list)  # [N] MapPoint | None
+    outliers: np.ndarray | None = None  # [N] bool, set by pose optimisation
+
+    def __post_init__(self):
+        n = len(self.keypoints)
+        if not self.points:
+            self.points = [None] * n
+        if self.outliers is None:
+            self.outliers = np.zeros(n, bool)
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.T_cw[:3, :3].T @ self.T_cw[:3, 3]
+
+    def matched_indices(self) -> np.ndarray:
+        return np.array([i for i, p in enumerate(self.points) if p is not None and not p.is_bad], dtype=int)
+
+    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points [M, 3] -> (pixels [M, 2], depths [M])."""
+        Xc = transform(self.T_cw, X)
+        z = Xc[:, 2]
+        uv = Xc[:, :2] / np.where(np.abs(z) < 1e-9, 1e-9, z)[:, None] * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
+        return uv, z
+
+    def in_image(self, uv: np.ndarray, border: float = 0.0) -> np.ndarray:
+        w, h = self.image_size
+        return (uv[:, 0] >= border) & (uv[:, 1] >= border) & (uv[:, 0] < w - border) & (uv[:, 1] < h - border)
+
+
+_ids = itertools.count()
+
+
+class KeyFrame(Frame):
+    """A frame kept in the map; `id` is unique and increasing in insertion order."""
+
+    def __init__(self, frame: Frame):
+        super().__init__(
+            index=frame.index, timestamp=frame.timestamp, keypoints=frame.keypoints,
+            descriptors=frame.descriptors, K=frame.K, image_size=frame.image_size,
+            global_descriptor=frame.global_descriptor, right=frame.right, depth=frame.depth,
+            T_cw=frame.T_cw.copy(), points=list(frame.points),
+        )
+        self.id = next(_ids)
+        self.is_bad = False
+        self.parent: KeyFrame | None = None  # spanning tree, for the essential graph and culled keyframes
+        self.T_parent: np.ndarray | None = None  # T_cw relative to the parent, kept when culled
+        self.loop_edges: set[KeyFrame] = set()
+
+    def __hash__(self) -> int:
+        return self.id
+
+    def __repr__(self) -> str:
+        return f"KeyFrame(id={self.id}, frame={self.index})"
+
+    def pose(self) -> np.ndarray:
+        """T_cw, also for a culled keyframe (through its parent chain)."""
+        if not self.is_bad:
+            return self.T_cw
+        return self.T_parent @ self.parent.pose()
+
+
+class MapPoint:
+    def __init__(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame):
+        self.id = next(_ids)
+        self.position = np.asarray(position, dtype=np.float64)
+        self.descriptor = descriptor
+        self.reference = reference  # keyframe that created it (for loop correction)
+        self.observations: dict[KeyFrame, int] = {}
+        self.normal = np.zeros(3)
+        self.is_bad = False
+        self.visible = 1  # frames in whose frustum it fell
+        self.found = 1  # frames where it was matched
+        self.first_kf_id = reference.id
+        self.replaced_by: MapPoint | None = None
+
+    def __hash__(self) -> int:
+        return self.id
+
+    def add_observation(self, kf: KeyFrame, index: int) -> None:
+        self.observations[kf] = index
+        kf.points[index] = self
+
+    def update_normal(self) -> None:
+        if not self.observations:
+            return
+        dirs = [self.position - kf.center for kf in self.observations]
+        n = np.mean([d / max(np.linalg.norm(d), 1e-12) for d in dirs], axis=0)
+        self.normal = n / max(np.linalg.norm(n), 1e-12)
+
+    def update_descriptor(self, binary: bool) -> None:
+        """The observation descriptor with the least median distance to the others (ORB-SLAM's choice)."""
+        descs = np.stack([kf.descriptors[i] for kf, i in self.observations.items()])
+        if len(descs) < 3:
+            self.descriptor = descs[-1] if len(descs) else self.descriptor
+            return
+        d = descriptor_distances(descs, descs, binary)
+        self.descriptor = descs[int(np.argmin(np.median(d, axis=1)))]
+
+
+class Map:
+    def __init__(self):
+        self.keyframes: list[KeyFrame] = []  # insertion order, culled ones removed
+        self.points: set[MapPoint] = set()
+        self.covisibility: dict[KeyFrame, dict[KeyFrame, int]] = {}
+        self.lock = threading.RLock()
+
+    # --- keyframes -------------------------------------------------------------------------------------------
+    def add_keyframe(self, kf: KeyFrame) -> None:
+        self.keyframes.append(kf)
+        self.covisibility[kf] = {}
+
+    def update_connections(self, kf: KeyFrame, min_weight: int = 15) -> None:
+        """Covisibility weights = number of shared map points; spanning-tree parent = strongest older neighbour."""
+        counts: dict[KeyFrame, int] = {}
+        for p in kf.points:
+            if p is None or p.is_bad:
+                continue
+            for other in p.observations:
+                if other is not kf and not other.is_bad:
+                    counts[other] = counts.get(other, 0) + 1
+        if not counts:
+            return
+        strongest = max(counts, key=counts.get)
+        kept = {o: w for o, w in counts.items() if w >= min_weight} or {strongest: counts[strongest]}
+        old = self.covisibility.get(kf, {})
+        for o in set(old) - set(kept):
+            self.covisibility.get(o, {}).pop(kf, None)
+        self.covisibility[kf] = kept
+        for o, w in kept.items():
+            self.covisibility.setdefault(o, {})[kf] = w
+        if kf.parent is None and kf is not self.keyframes[0]:
+            older = [o for o in counts if o.id < kf.id]
+            if older:
+                kf.parent = max(older, key=counts.get)
+
+    def neighbours(self, kf: KeyFrame, n: int | None = None, min_weight: int = 0) -> list[KeyFrame]:
+        """Covisible keyframes sorted by decreasing weight."""
+        items = sorted(self.covisibility.get(kf, {}).items(), key=lambda kv: (-kv[1], kv[0].id))
+        out = [o for o, w in items if w >= min_weight and not o.is_bad]
+        return out if n is None else out[:n]
+
+    def children(self, kf: KeyFrame) -> list[KeyFrame]:
+        return [k for k in self.keyframes if k.parent is kf]
+
+    def remove_keyframe(self, kf: KeyFrame) -> None:
+        """Cull: drop its observations, re-parent its children, remember its pose relative to its parent."""
+        if kf.parent is None:
+            return  # the first keyframe anchors the map
+        for i, p in enumerate(kf.points):
+            if p is not None:
+                p.observations.pop(kf, None)
+                if len(p.observations) < 2 and not p.is_bad:
+                    self.remove_point(p)
+            kf.points[i] = None
+        for child in self.children(kf):
+            child.parent = kf.parent
+        kf.T_parent = kf.T_cw @ inverse_pose(kf.parent.T_cw)
+        for o in self.covisibility.pop(kf, {}):
+            self.covisibility.get(o, {}).pop(kf, None)
+        kf.is_bad = True
+        self.keyframes.remove(kf)
+
+    # --- points ----------------------------------------------------------------------------------------------
+    def add_point(self, p: MapPoint) -> None:
+        self.points.add(p)
+
+    def remove_point(self, p: MapPoint) -> None:
+        p.is_bad = True
+        for kf, i in p.observations.items():
+            if kf.points[i] is p:
+                kf.points[i] = None
+        p.observations = {}
+        self.points.discard(p)
+
+    def replace_point(self, old: MapPoint, new: MapPoint) -> None:
+        """Merge a duplicate: `new` inherits every observation of `old` (fusion and loop correction)."""
+        if old is new:
+            return
+        for kf, i in list(old.observations.items()):
+            if kf in new.observations:
+                kf.points[i] = None
+            else:
+                new.add_observation(kf, i)
+        new.visible += old.visible
+        new.found += old.found
+        old.observations = {}
+        old.is_bad = True
+        old.replaced_by = new
+        self.points.discard(old)

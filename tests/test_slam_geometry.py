@@ -1,0 +1,136 @@
+"""Geometry on exact synthetic point clouds seen by a simple pinhole camera."""
+
+import numpy as np
+import pytest
+
+from ruslam.slam.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
+from ruslam.slam.geometry import (
+    pose_matrix,
+    project,
+    sim3_ransac,
+    solve_pnp_ransac,
+    triangulate,
+    triangulation_mask,
+    two_view_initialization,
+    umeyama,
+)
+from ruslam.slam.map import inverse_pose, transform
+from ruslam.slam.optimization import se3_exp
+
+K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
+
+
+def cloud(n=300, seed=0, depth=(4, 8)):
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-3, -2, depth[0]], [3, 2, depth[1]], (n, 3))
+
+
+def test_triangulation_recovers_points():
+    X = cloud()
+    T1 = np.eye(4)
+    T2 = se3_exp(np.array([0.02, -0.05, 0.01, -0.4, 0.05, 0.1]))
+    x1, _ = project(K, T1, X)
+    x2, _ = project(K, T2, X)
+    Xt = triangulate(K, T1, x1, K, T2, x2)
+    assert np.abs(Xt - X).max() < 1e-6
+    assert triangulation_mask(Xt, K, T1, x1, K, T2, x2, min_parallax_deg=0.5).mean() > 0.9
+    # a point behind the second camera is rejected
+    bad = triangulation_mask(np.array([[0.0, 0, -5]]), K, T1, x1[:1], K, T2, x2[:1])
+    assert not bad.any()
+
+
+def test_pnp_recovers_pose_with_outliers():
+    X = cloud(200, seed=1)
+    T = se3_exp(np.array([0.1, -0.2, 0.05, 0.3, -0.1, 0.5]))
+    x, _ = project(K, T, X)
+    rng = np.random.default_rng(2)
+    x_noisy = x + rng.normal(0, 0.5, x.shape)
+    x_noisy[:40] = rng.uniform([0, 0], [640, 480], (40, 2))  # 20% gross outliers
+    T_est, inliers = solve_pnp_ransac(X, x_noisy, K, seed=0)
+    assert np.abs(T_est[:3, 3] - T[:3, 3]).max() < 0.05
+    assert np.abs(T_est[:3, :3] - T[:3, :3]).max() < 0.01
+    assert inliers[40:].mean() > 0.95 and inliers[:40].mean() < 0.1
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_two_view_initialization_recovers_motion_up_to_scale(planar):
+    X = cloud(400, seed=3)
+    if planar:
+        X[:, 2] = 6.0 + 0.2 * X[:, 0]  # a tilted plane: the homography branch must be chosen
+    T2 = se3_exp(np.array([0.01, 0.08, 0.0, -0.5, 0.0, 0.05]))
+    x1, _ = project(K, np.eye(4), X)
+    x2, _ = project(K, T2, X)
+    out = two_view_initialization(x1, x2, K, seed=0)
+    assert out is not None
+    T_est, X_est, good, model = out
+    assert model == ("homography" if planar else "fundamental")
+    assert good.mean() > 0.9
+    scale = np.median(X[good, 2])  # the estimate has unit median depth
+    assert np.abs(T_est[:3, 3] * scale - T2[:3, 3]).max() < 1e-2
+    assert np.abs(T_est[:3, :3] - T2[:3, :3]).max() < 1e-3
+    assert np.abs(X_est[good] * scale - X[good]).max() < 0.05
+
+
+def test_two_view_initialization_refuses_pure_rotation():
+    X = cloud(300, seed=4)
+    T2 = pose_matrix(se3_exp(np.array([0.0, 0.1, 0.0, 0, 0, 0]))[:3, :3], np.zeros(3))
+    x1, _ = project(K, np.eye(4), X)
+    x2, _ = project(K, T2, X)
+    assert two_view_initialization(x1, x2, K) is None
+
+
+def test_umeyama_and_sim3_ransac():
+    rng = np.random.default_rng(5)
+    S = pose_matrix(se3_exp(np.array([0.2, -0.1, 0.3, 0, 0, 0]))[:3, :3], [0.5, -0.2, 0.3], s=1.7)
+    P2 = cloud(100, seed=6)
+    P1 = transform(S, P2)
+    assert np.abs(umeyama(P2, P1) - S).max() < 1e-9
+    x1, _ = project(K, np.eye(4), P1)
+    x2, _ = project(K, np.eye(4), P2)
+    P1_noisy = P1.copy()
+    P1_noisy[:25] += rng.normal(0, 2.0, (25, 3))  # 25% wrong 3-D matches
+    S_est, inl = sim3_ransac(P1_noisy, P2, x1, x2, K, K, with_scale=True, seed=0)
+    assert np.abs(S_est - S).max() < 1e-6
+    assert inl[25:].all() and inl[:25].mean() < 0.2
+    # a rigid fit cannot explain the scale: it must not claim the same inliers
+    rigid = sim3_ransac(P1_noisy, P2, x1, x2, K, K, with_scale=False, seed=0)
+    assert rigid is None or rigid[1].sum() < 40
+
+
+def test_inverse_pose_of_similarity():
+    S = pose_matrix(np.eye(3), [1, 2, 3], s=2.0)
+    assert np.allclose(inverse_pose(S) @ S, np.eye(4))
+
+
+def test_matching_binary_and_float():
+    rng = np.random.default_rng(7)
+    a = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    b = a[::-1].copy()
+    b[:, 0] ^= 1  # one flipped bit
+    d = descriptor_distances(a, b, binary=True)
+    assert d[0, 49] == 1 and d.min() == 1
+    i1, i2 = match_knn_ratio(a, b, binary=True, max_distance=10)
+    assert len(i1) == 50 and np.all(i2 == 49 - i1)
+    f = rng.normal(size=(60, 64)).astype(np.float32)
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    g = f + rng.normal(0, 0.01, f.shape).astype(np.float32)
+    d = descriptor_distances(f, g, binary=False)
+    assert np.allclose(d, np.linalg.norm(f[:, None] - g[None], axis=2), atol=1e-4)
+    i1, i2 = match_knn_ratio(f, g, binary=False, max_distance=0.5)
+    assert len(i1) == 60 and np.all(i1 == i2)
+
+
+def test_window_search_respects_radius_and_uniqueness():
+    rng = np.random.default_rng(8)
+    kp = rng.uniform(0, 400, (200, 2))
+    desc = rng.normal(size=(200, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    uv = kp[:100] + rng.normal(0, 2, (100, 2))
+    ip, ik = match_in_windows(uv, desc[:100], kp, desc, 8.0, binary=False, max_distance=0.3)
+    assert len(ip) > 95 and np.all(ip == ik)
+    # far predictions find nothing even though the descriptors are identical
+    ip, _ = match_in_windows(uv + 50, desc[:100], kp, desc, 8.0, binary=False, max_distance=0.3)
+    assert len(ip) < 5
+    # two points with the same descriptor compete for one keypoint: only one gets it
+    ip, ik = match_in_windows(np.stack([kp[0], kp[0] + 1]), desc[[0, 0]], kp, desc, 8.0, False, 0.3)
+    assert len(np.unique(ik)) == len(ik) == 1

@@ -1,0 +1,138 @@
+"""Optimisation functions on exact synthetic problems (pinhole camera, known poses and points)."""
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from ruslam.slam.geometry import pose_matrix, project
+from ruslam.slam.map import inverse_pose
+from ruslam.slam.optimization import bundle_adjustment, optimize_pose, pose_graph_optimization, se3_exp
+
+K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
+T_C0_C1 = pose_matrix(np.eye(3), [0.2, 0, 0])  # right camera 20 cm to the right
+
+
+def cloud(n, seed):
+    return np.random.default_rng(seed).uniform([-3, -2, 4], [3, 2, 9], (n, 3))
+
+
+def test_motion_only_pose_recovers_truth_and_flags_outliers():
+    rng = np.random.default_rng(0)
+    Xw = cloud(300, 1)
+    T = se3_exp(np.array([0.05, -0.1, 0.02, 0.3, -0.2, 0.4]))
+    uv, _ = project(K, T, Xw)
+    uv = uv + rng.normal(0, 0.5, uv.shape)
+    uv[:30] += rng.uniform(20, 60, (30, 2))
+    T0 = se3_exp(np.array([0.02, 0.02, -0.02, 0.1, 0.1, -0.1])) @ T
+    T_est, inl = optimize_pose(T0, Xw, uv, K)
+    assert np.abs(T_est[:3, 3] - T[:3, 3]).max() < 0.02
+    assert not inl[:30].any() and inl[30:].mean() > 0.95
+    # same answer as gtsam on the inliers (fixed points, pose variable only)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    cal = gtsam.Cal3_S2(400, 400, 0, 320, 240)
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
+    for i in np.nonzero(inl)[0]:
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], noise, X(0), L(i), cal))
+        graph.add(gtsam.NonlinearEqualityPoint3(L(i), Xw[i]))
+        values.insert(L(i), Xw[i])
+    values.insert(X(0), gtsam.Pose3(inverse_pose(T0)))
+    ref = inverse_pose(gtsam.LevenbergMarquardtOptimizer(graph, values).optimize().atPose3(X(0)).matrix())
+    assert np.abs(ref - T_est).max() < 1e-4
+
+
+def test_motion_only_stereo_observations_fix_translation_along_the_ray():
+    Xw = cloud(100, 2)
+    T = se3_exp(np.array([0.0, 0.05, 0.0, 0.1, 0.0, 0.2]))
+    uv, _ = project(K, T, Xw)
+    uv_r, _ = project(K, inverse_pose(T_C0_C1) @ T, Xw)
+    T_est, inl = optimize_pose(se3_exp(np.array([0, 0, 0, 0.05, -0.05, 0.1])) @ T, Xw, uv, K, uv_r, K,
+                               inverse_pose(T_C0_C1))
+    assert inl.all() and np.abs(T_est - T).max() < 1e-6
+
+
+def _ba_problem(stereo, seed=3):
+    rng = np.random.default_rng(seed)
+    Xw = cloud(150, seed)
+    poses = np.stack([se3_exp(np.array([0, 0.02 * i, 0, -0.3 * i, 0, 0.05 * i])) for i in range(5)])
+    obs = []
+    for i, T in enumerate(poses):
+        uv, z = project(K, T, Xw)
+        for j in range(len(Xw)):
+            obs.append((i, j, uv[j] + rng.normal(0, 0.5, 2), False))
+            if stereo:
+                uvr, _ = project(K, inverse_pose(T_C0_C1) @ T, Xw[j:j + 1])
+                obs.append((i, j, uvr[0] + rng.normal(0, 0.5, 2), True))
+    oi, oj = np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
+    ouv, orr = np.stack([o[2] for o in obs]), np.array([o[3] for o in obs])
+    noisy_poses = poses.copy()
+    for i in range(2, 5):  # poses 0 and 1 stay exact: they are the fixed gauge (and scale) of the test
+        noisy_poses[i] = se3_exp(rng.normal(0, 0.01, 6)) @ poses[i]
+    return poses, noisy_poses, Xw, Xw + rng.normal(0, 0.05, Xw.shape), oi, oj, ouv, orr
+
+
+def _rmse(poses, points, oi, oj, ouv, orr):
+    err = []
+    for i, j, uv, r in zip(oi, oj, ouv, orr, strict=True):
+        T = inverse_pose(T_C0_C1) @ poses[i] if r else poses[i]
+        err.append(np.sum((project(K, T, points[j:j + 1])[0][0] - uv) ** 2))
+    return np.sqrt(np.mean(err))
+
+
+def test_local_bundle_adjustment_lowers_reprojection_error():
+    poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=False)
+    fixed = np.array([True, True, False, False, False])  # two fixed poses fix the monocular gauge (and scale)
+    before = _rmse(noisy, Xn, oi, oj, ouv, orr)
+    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K)
+    after = _rmse(P, pts, oi, oj, ouv, orr)
+    assert before > 5.0 and after < 0.8  # noise is 0.5 px per axis: ~0.7 px is the floor
+    assert inl.mean() > 0.97
+    assert np.allclose(P[:2], noisy[:2])  # fixed poses did not move
+    assert np.abs(P[4][:3, 3] - poses[4][:3, 3]).max() < 0.02
+
+
+def test_stereo_bundle_adjustment_uses_right_camera():
+    poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=True)
+    fixed = np.array([True, False, False, False, False])
+    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K, orr, K, T_C0_C1)
+    assert _rmse(P, pts, oi, oj, ouv, orr) < 0.8
+    # metric scale is observable through the baseline: the last pose lands on the truth
+    assert np.abs(P[4][:3, 3] - poses[4][:3, 3]).max() < 0.02
+
+
+def test_sim3_pose_graph_closes_a_loop_with_scale_drift():
+    # a circle of 12 poses; odometry translations drift in scale by 4% per step (monocular scale drift) and the
+    # loop edge, measured by aligning the two maps, carries the accumulated scale ratio
+    n = 12
+    true = []
+    for i in range(n):
+        yaw = 2 * np.pi * i / n
+        R = se3_exp(np.array([0, yaw, 0, 0, 0, 0]))[:3, :3]
+        c = np.array([3 * np.sin(yaw), 0, 3 * np.cos(yaw)])
+        true.append(pose_matrix(R.T, -R.T @ c))
+    true = np.stack(true)
+    drifted = [true[0]]
+    edges, rel = [], []
+    for i in range(1, n):
+        S_rel = true[i] @ inverse_pose(true[i - 1])  # S_(i, i-1)
+        S_rel = pose_matrix(S_rel[:3, :3], S_rel[:3, 3] * 1.04 ** i)
+        drifted.append(S_rel @ drifted[-1])
+        edges.append((i - 1, i))
+        rel.append(inverse_pose(S_rel))  # S_(i-1, i)
+    drifted = np.stack(drifted)
+    edges.append((n - 1, 0))
+    sigma = 1.04 ** (n - 1)
+    loop = true[n - 1] @ inverse_pose(true[0])
+    rel.append(pose_matrix(loop[:3, :3], sigma * loop[:3, 3], s=sigma))
+    out = pose_graph_optimization(drifted, np.array(edges), np.stack(rel), fixed=[0], similarity=True)
+
+    def centres(P):
+        return np.stack([inverse_pose(T)[:3, 3] for T in P])
+
+    def rms(P):
+        return np.sqrt(np.mean(np.sum((centres(P) - centres(true)) ** 2, 1)))
+
+    rigid_rel = np.stack(rel[:-1] + [loop])
+    se3 = pose_graph_optimization(drifted, np.array(edges), rigid_rel, fixed=[0], similarity=False)
+    assert rms(out) < 0.3 * rms(drifted)
+    assert rms(out) < 0.5 * rms(se3)  # only a similarity graph can absorb scale drift
+    assert np.allclose(out[0], drifted[0]) and np.allclose(se3[0], drifted[0])  # the fixed pose stays
