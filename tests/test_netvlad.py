@@ -56,3 +56,61 @@ def test_init_from_centroids_gives_hard_vlad_and_gradients_flow():
 def test_netvlad_rejects_wrong_channels():
     with pytest.raises(ValueError, match=r"features \[B, 16, h, w\]"):
         NetVLAD(4, 16)(torch.rand(1, 8, 4, 4))
+
+
+# ---- NetVLAD teacher (VGG16 + NetVLAD + WPCA), pytorch-NetVLAD / Patch-NetVLAD checkpoint layout ----
+VGG_CONVS = [0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28]  # conv layers of VGG16 features up to conv5_3
+
+
+def patch_netvlad_state(num_clusters=4, pca_dim=16, seed=0):
+    import torchvision
+
+    g = torch.Generator().manual_seed(seed)
+    vgg = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"])  # VGG16 features
+    state = {}
+    for i in VGG_CONVS:
+        state[f"encoder.{i}.weight"] = torch.randn(vgg[i].weight.shape, generator=g) * 0.05
+        state[f"encoder.{i}.bias"] = torch.randn(vgg[i].bias.shape, generator=g) * 0.01
+    state["pool.conv.weight"] = torch.randn(num_clusters, 512, 1, 1, generator=g)
+    state["pool.centroids"] = torch.randn(num_clusters, 512, generator=g)
+    state["WPCA.0.weight"] = torch.randn(pca_dim, num_clusters * 512, 1, 1, generator=g)
+    state["WPCA.0.bias"] = torch.randn(pca_dim, generator=g)
+    return state
+
+
+def test_netvlad_teacher_loads_the_public_layout_and_computes_the_pipeline(tmp_path):
+    import torchvision
+
+    from ruslam.models.teachers.netvlad import NetVLADTeacher
+
+    state = patch_netvlad_state()
+    path = tmp_path / "pittsburgh_WPCA16.pth.tar"
+    torch.save({"state_dict": state}, path)
+    teacher = NetVLADTeacher(weights=str(path), num_clusters=4, pca_dim=16)
+    image = torch.rand(2, 3, 64, 80, generator=torch.Generator().manual_seed(1))
+    out = teacher(image)
+    assert out.shape == (2, 16)
+    # the same pipeline by hand: ImageNet-normalized VGG16 conv5_3 (no last ReLU), per-cluster VLAD, WPCA, L2
+    vgg = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"])[:29]
+    vgg.load_state_dict({k.removeprefix("encoder."): v for k, v in state.items() if k.startswith("encoder.")})
+    mean, std = torch.tensor([0.485, 0.456, 0.406]), torch.tensor([0.229, 0.224, 0.225])
+    with torch.no_grad():
+        feats = vgg((image - mean[:, None, None]) / std[:, None, None])
+    w = state["pool.conv.weight"][:, :, 0, 0]
+    for i in range(2):
+        vlad = reference_netvlad(feats[i], w, torch.zeros(4), state["pool.centroids"])
+        pca = state["WPCA.0.weight"][:, :, 0, 0] @ vlad + state["WPCA.0.bias"]
+        torch.testing.assert_close(out[i], pca / pca.norm(), atol=1e-4, rtol=1e-3)
+
+
+def test_netvlad_teacher_names_missing_weights(tmp_path):
+    from ruslam.models.teachers.netvlad import NetVLADTeacher
+
+    state = patch_netvlad_state()
+    del state["WPCA.0.bias"]
+    path = tmp_path / "partial.pth"
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=r"missing keys \['WPCA.0.bias'\]"):
+        NetVLADTeacher(weights=str(path), num_clusters=4, pca_dim=16)
+    with pytest.raises(FileNotFoundError, match="needs user-supplied weights"):
+        NetVLADTeacher(num_clusters=4, pca_dim=16)

@@ -12,6 +12,7 @@ EXTRACTORS = {
     "orb": "ruslam.models.classical:ORB",
     "sift": "ruslam.models.classical:SIFT",
     "xfeat": "ruslam.models.teachers.xfeat:XFeat",
+    "superpoint": "ruslam.models.teachers.superpoint:SuperPoint",
 }
 
 
