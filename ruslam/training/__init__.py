@@ -1,0 +1,1 @@
+"""Distillation training: Lightning module, data module and the sample augmentations."""
