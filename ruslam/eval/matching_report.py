@@ -1,0 +1,200 @@
+"""`python evaluate.py task=matching`: paper Table 2 (Rep., M.S., MMA) for several extractors on one dataset.
+
+Writes into cfg.out_dir: ``table.md`` and ``table.csv`` (overall and per rotation bin), ``mma_vs_threshold.png``,
+``matches/<extractor>_<pair>.png`` (correct matches green, wrong red) and ``results.json``.
+
+Extractor names resolve as: a key of ``task.weights`` -> that weights file (skipped with a note when it is null
+or missing); a registered name (`ruslam.models.registry`) -> `load_extractor` (skipped with a note when it cannot
+be built here, e.g. SuperPoint without weights); a ``.pt/.pth/.ckpt`` path -> UWNet weights. Anything else is an
+error before any work starts.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from hydra.utils import get_method
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
+from ruslam.eval.matching import PairResult, evaluate_pair, rotation_bin, summarize
+from ruslam.models.registry import EXTRACTORS, load_extractor
+
+WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
+
+
+def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
+    """Validate every name first (unknown -> one clear error), then build: ({name: extractor}, {name: skip note})."""
+    weights = dict(task.get("weights") or {})
+    options = OmegaConf.to_container(OmegaConf.create(task.get("extractor_options") or {}), resolve=True)
+    for name in names:
+        if name not in weights and name not in EXTRACTORS and Path(str(name)).suffix not in WEIGHT_SUFFIXES:
+            raise ValueError(
+                f"Unknown extractor {name!r} in extractors; expected one of "
+                f"{sorted(set(EXTRACTORS) | set(weights))} or a {'/'.join(WEIGHT_SUFFIXES)} weights file."
+            )
+    built, skipped = {}, {}
+    for name in names:
+        conf = dict(options.get(name, {}))
+        if name in weights:
+            path = weights[name]
+            if not path or not Path(path).is_file():
+                skipped[name] = f"no weights file configured (task.weights.{name}={path})"
+                continue
+            built[name] = load_extractor(path, device=task.device, **conf)
+        elif name in EXTRACTORS:
+            try:
+                built[name] = load_extractor(name, device=task.device, **conf)
+            except Exception as exc:  # noqa: BLE001 (any failure to build makes this extractor unavailable here)
+                skipped[name] = f"unavailable: {type(exc).__name__}: {exc}"
+        else:
+            built[name] = load_extractor(name, device=task.device, **conf)  # an explicit weights path must exist
+    return built, skipped
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _bin_name(lo, hi) -> str:
+    return f"{lo:g}-{hi:g}°"
+
+
+def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path, bins) -> tuple:
+    """Run every extractor on every pair (one progress bar over pairs).
+
+    Returns ({name: [PairResult]}, [rotation of each pair], {name: [seconds per image]}, [picture paths]); the
+    first pair met in each rotation bin (at most ``task.num_pictures`` pairs) gets a match picture per extractor.
+    """
+    thresholds = tuple(task.thresholds)
+    results = {name: [] for name in extractors}
+    rotations, timings = [], {name: [] for name in extractors}
+    reference = {}  # name -> (sequence, features of image 1): image 1 is shared by the pairs of a sequence
+    pictured_bins, pictures = set(), []
+    (out_dir / "matches").mkdir(parents=True, exist_ok=True)
+    for i in tqdm(range(len(dataset)), desc="matching pairs", unit="pair"):
+        pair = dataset[i]
+        rotations.append(pair["rotation_deg"])
+        b = rotation_bin(pair["rotation_deg"], bins)
+        picture = len(pictured_bins) < task.num_pictures and b not in pictured_bins
+        for name, extractor in extractors.items():
+            if reference.get(name, (None,))[0] != pair["sequence"]:
+                reference[name] = (pair["sequence"], extractor.extract(pair["image1"]))
+            start = time.perf_counter()
+            features2 = extractor.extract(pair["image2"])
+            timings[name].append(time.perf_counter() - start)
+            res = evaluate_pair(
+                reference[name][1], features2, pair["H"], pair["image1"].shape[:2], pair["image2"].shape[:2],
+                binary=getattr(extractor, "binary", False), max_keypoints=task.max_keypoints, eps=task.eps,
+                thresholds=thresholds,
+            )
+            if picture:
+                canvas = draw_matches(pair["image1"], pair["image2"], res.keypoints1, res.keypoints2, res.matches,
+                                      res.match_errors <= task.eps)
+                path = out_dir / "matches" / f"{name}_{pair['name'].replace('/', '_')}.png"
+                write_png(path, canvas)
+                pictures.append(str(path.relative_to(out_dir)))
+            empty = np.zeros((0, 2))
+            results[name].append(replace(res, keypoints1=empty, keypoints2=empty, matches=empty, match_errors=empty))
+        if picture:
+            pictured_bins.add(b)
+    return results, rotations, timings, pictures
+
+
+def summarize_by_bin(results: list[PairResult], rotations: list[float], bins, thresholds, headline) -> dict:
+    out = {"overall": summarize(results, thresholds, headline)}
+    for k, (lo, hi) in enumerate(bins):
+        subset = [r for r, a in zip(results, rotations, strict=True) if rotation_bin(a, bins) == k]
+        out[_bin_name(lo, hi)] = summarize(subset, thresholds, headline)
+    return out
+
+
+def markdown_table(title: str, summary: dict, labels: dict, skipped: dict, bins, headline) -> str:
+    bin_names = [_bin_name(lo, hi) for lo, hi in bins]
+    first = next(iter(summary.values()), None)
+    counts = [first[b]["pairs"] if first else 0 for b in bin_names]
+    head = ["Method", "%Rep.", "%M.S.", f"%MMA@{headline:g}px"]
+    head += [f"%MMA {b} (n={n})" for b, n in zip(bin_names, counts, strict=True)] + ["kpts", "matches"]
+    lines = [f"### {title}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    fmt = lambda s, key: f"{s[key]:.2f}" if s.get("pairs") else "-"  # noqa: E731
+    for name, s in summary.items():
+        o = s["overall"]
+        row = [labels.get(name, name), fmt(o, "rep"), fmt(o, "ms"), fmt(o, "mma")]
+        row += [fmt(s[b], "mma") for b in bin_names] + [f"{o['keypoints']:.0f}", f"{o['matches']:.0f}"]
+        lines.append("| " + " | ".join(row) + " |")
+    if skipped:
+        lines += ["", "Skipped:"] + [f"- {labels.get(n, n)} (`{n}`): {why}" for n, why in skipped.items()]
+    return "\n".join(lines) + "\n"
+
+
+def csv_table(summary: dict, labels: dict, skipped: dict, bins, thresholds) -> str:
+    parts = ["overall"] + [_bin_name(lo, hi) for lo, hi in bins]
+    header = ["method", "name", "part", "pairs", "rep", "ms", "mma", "keypoints", "matches"]
+    header += [f"mma@{t:g}" for t in thresholds] + ["note"]
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(header)
+    for name, s in summary.items():
+        for part in parts:
+            p = s[part]
+            if not p.get("pairs"):
+                writer.writerow([labels.get(name, name), name, part, 0] + [""] * (len(header) - 5))
+                continue
+            values = [round(p[k], 3) for k in ("rep", "ms", "mma", "keypoints", "matches")]
+            writer.writerow([labels.get(name, name), name, part, p["pairs"], *values,
+                             *[round(v, 3) for v in p["mma_curve"]], ""])
+    for name, why in skipped.items():
+        writer.writerow([labels.get(name, name), name, "overall", 0] + [""] * (len(header) - 5) + [why])
+    return buf.getvalue()
+
+
+def run(cfg: DictConfig) -> dict:
+    task, out_dir = cfg.task, Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = list(cfg.extractors)
+    if not names:
+        raise ValueError("extractors is empty; name at least one extractor, e.g. extractors=[sift,orb].")
+    thresholds, headline = tuple(task.thresholds), float(task.headline_threshold)
+    if headline not in thresholds:
+        raise ValueError(f"task.headline_threshold={headline:g} must be one of task.thresholds {list(thresholds)}.")
+    bins = [tuple(b) for b in task.rotation_bins]
+    labels = dict(task.get("labels") or {})
+    extractors, skipped = resolve_extractors(names, task)
+
+    dataset_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
+    title = dataset_cfg.pop("label", "dataset")
+    # called directly (not hydra.utils.instantiate) so that a bad-input error reaches the user as its own sentence;
+    # nested configs (the builder's `degrade`) are instantiated by the builder, which records them.
+    dataset = get_method(dataset_cfg.pop("_target_"))(**dataset_cfg)
+    if len(dataset) == 0:
+        raise ValueError(f"Dataset {title} holds no image pair.")
+    if extractors:
+        results, rotations, timings, pictures = evaluate_dataset(dataset, extractors, task, out_dir, bins)
+    else:  # every extractor was skipped: still write the table with the notes
+        results, rotations, timings, pictures = {}, [], {}, []
+
+    summary = {n: summarize_by_bin(r, rotations, bins, thresholds, headline) for n, r in results.items()}
+    for name in summary:
+        summary[name]["seconds_per_image"] = float(np.mean(timings[name]))
+    title = (f"{title}: {len(dataset)} pairs, {task.max_keypoints} keypoints max, Rep./M.S. at "
+             f"{task.eps:g} px, MMA at {headline:g} px")
+    _atomic_write(out_dir / "table.md", markdown_table(title, summary, labels, skipped, bins, headline))
+    _atomic_write(out_dir / "table.csv", csv_table(summary, labels, skipped, bins, thresholds))
+    curves = {labels.get(n, n): s["overall"]["mma_curve"] for n, s in summary.items() if s["overall"].get("pairs")}
+    plot_mma(curves, thresholds, out_dir / "mma_vs_threshold.png", title.split(":")[0])
+    report = {"dataset": title, "pairs": len(dataset), "rotations_deg": rotations, "results": summary,
+              "skipped": skipped, "pictures": pictures,
+              "files": ["table.md", "table.csv", "mma_vs_threshold.png", "results.json"]}
+    _atomic_write(out_dir / "results.json", json.dumps(report, indent=1))
+    print((out_dir / "table.md").read_text())
+    return report

@@ -1,0 +1,69 @@
+import csv
+import json
+
+import cv2
+import numpy as np
+import pytest
+from conftest import compose
+
+from ruslam.eval.matching_report import run
+
+SMALL = ["dataset.size=[96,128]", "dataset.eval_size=[96,128]", "dataset.num_warps=2"]
+
+
+def write_images(folder, n):
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    for i in range(n):
+        small = (rng.random((12, 16, 3)) * 255).astype(np.uint8)
+        cv2.imwrite(str(folder / f"img{i}.jpg"), cv2.resize(small, (128, 96), interpolation=cv2.INTER_NEAREST))
+    return folder
+
+
+def check_outputs(out, report, names):
+    table = (out / "table.md").read_text()
+    for label in names:
+        assert f"| {label} |" in table
+    assert "0-30°" in table and "30-90°" in table and "90-180°" in table
+    rows = list(csv.DictReader((out / "table.csv").open()))
+    assert {r["part"] for r in rows} >= {"overall", "0-30°", "30-90°", "90-180°"}
+    png = cv2.imread(str(out / "mma_vs_threshold.png"))
+    assert png is not None and png.shape[0] > 100
+    assert report["pictures"] and all((out / p).is_file() for p in report["pictures"])
+    assert json.loads((out / "results.json").read_text())["pairs"] == report["pairs"]
+    assert not list(out.rglob("*.tmp"))
+
+
+def test_folder_run_writes_table_plot_pictures_and_skip_notes(tmp_path):
+    src = write_images(tmp_path / "src", 3)
+    cfg = compose("evaluate", ["task=matching", "dataset=upatches", f"dataset.root={src}", "dataset.num_images=3",
+                               "extractors=[sift,orb,uwnet_no_am_dcn]", f"out_dir={tmp_path / 'out'}", *SMALL])
+    report = run(cfg)
+    out = tmp_path / "out"
+    check_outputs(out, report, ["SIFT", "ORB"])
+    assert report["pairs"] == 6 and set(report["results"]) == {"sift", "orb"}
+    assert "no weights file configured" in report["skipped"]["uwnet_no_am_dcn"]
+    assert "UWNet w/o AM-DCN (`uwnet_no_am_dcn`): no weights file configured" in (out / "table.md").read_text()
+    for res in report["results"].values():
+        bins = [res[b]["pairs"] for b in ("0-30°", "30-90°", "90-180°")]
+        assert sum(bins) == 6  # every pair lands in exactly one rotation bin
+        o = res["overall"]
+        assert 0 <= o["rep"] <= 100 and 0 <= o["ms"] <= 100 and o["mma"] == pytest.approx(o["mma_curve"][2])
+        assert np.all(np.diff(o["mma_curve"]) >= 0)  # MMA can only grow with the threshold
+
+
+def test_unknown_extractor_is_one_sentence_before_any_work(tmp_path):
+    src = write_images(tmp_path / "src", 1)
+    cfg = compose("evaluate", ["task=matching", "dataset=upatches", f"dataset.root={src}", "dataset.num_images=1",
+                               "extractors=[orb,surf]", f"out_dir={tmp_path / 'out'}", *SMALL])
+    with pytest.raises(ValueError, match=r"^Unknown extractor 'surf' in extractors; expected one of \["):
+        run(cfg)
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_folder_with_fewer_images_than_asked(tmp_path):
+    src = write_images(tmp_path / "src", 2)
+    cfg = compose("evaluate", ["task=matching", "dataset=upatches", f"dataset.root={src}", "dataset.num_images=30",
+                               "extractors=[orb]", f"out_dir={tmp_path / 'out'}"])
+    with pytest.raises(ValueError, match=r"holds 2 image\(s\) .*fewer than the 30 asked"):
+        run(cfg)
