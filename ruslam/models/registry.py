@@ -11,6 +11,7 @@ from ruslam.models.extractor import Extractor
 EXTRACTORS = {
     "orb": "ruslam.models.classical:ORB",
     "sift": "ruslam.models.classical:SIFT",
+    "uwnet_xfeat": "ruslam.models.uwnet_extractor:UWNetExtractor",
     "xfeat": "ruslam.models.teachers.xfeat:XFeat",
     "superpoint": "ruslam.models.teachers.superpoint:SuperPoint",
 }

@@ -1,0 +1,81 @@
+"""`UWNetExtractor`: a trained UWNet behind the project's extractor contract (`load_extractor("uwnet_xfeat")`).
+
+The image is resized so its longer side is at most ``resize_max`` and both sides are multiples of 8 (the cell
+layout); keypoints are mapped back to input pixels with the pixel-centre convention x = (x' + 0.5) * s - 0.5.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ruslam.models.export import load_uwnet
+from ruslam.models.extractor import (
+    Extractor,
+    cell_logits_to_heatmap,
+    detect_keypoints,
+    sample_descriptors,
+    to_float_rgb,
+)
+
+STRIDE = 8
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "uwnet_xfeat.pt"
+
+
+class UWNetExtractor(Extractor):
+    default_conf = {
+        "weights": None,  # None: the checkpoint shipped in ruslam/weights/uwnet_xfeat.pt
+        "descriptor_dim": None,  # set to refuse weights of another descriptor width
+        "max_keypoints": 2000,
+        "nms_radius": 4,
+        "detection_threshold": 0.005,
+        "border": 4,
+        "resize_max": 640,  # longer side; None keeps the input size
+        "device": "cpu",
+    }
+    uses_device = True
+
+    def __init__(self, **conf):
+        super().__init__(**conf)
+        weights = self.conf["weights"] or SHIPPED_WEIGHTS
+        self.device = torch.device(self.conf["device"])
+        self.net = load_uwnet(weights, descriptor_dim=self.conf["descriptor_dim"]).to(self.device)
+        self.descriptor_dim = self.net.config["descriptor_dim"]
+
+    @classmethod
+    def from_file(cls, path: str | Path, device: str = "cpu", **conf) -> UWNetExtractor:
+        return cls(weights=str(path), device=device, **conf)
+
+    def _input_size(self, h: int, w: int) -> tuple[int, int]:
+        scale = 1.0
+        if self.conf["resize_max"] and max(h, w) > self.conf["resize_max"]:
+            scale = self.conf["resize_max"] / max(h, w)
+        return max(STRIDE, round(h * scale / STRIDE) * STRIDE), max(STRIDE, round(w * scale / STRIDE) * STRIDE)
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        rgb = to_float_rgb(image)
+        if not np.isfinite(rgb).all():
+            raise ValueError("image contains NaN or infinite values.")
+        h, w = rgb.shape[:2]
+        x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].to(self.device)
+        nh, nw = self._input_size(h, w)
+        if (nh, nw) != (h, w):
+            x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
+        out = self.net(x.clamp(0, 1))
+        heat = cell_logits_to_heatmap(out["keypoint_logits"], STRIDE)
+        c = self.conf
+        (xy, scores), = detect_keypoints(heat, c["nms_radius"], c["detection_threshold"], c["max_keypoints"],
+                                         c["border"])
+        desc = sample_descriptors(out["dense_descriptors"], xy[None], STRIDE)[0]
+        scale = xy.new_tensor([w / nw, h / nh])
+        xy = (xy + 0.5) * scale - 0.5
+        return {
+            "keypoints": xy.cpu().numpy().astype(np.float32),
+            "scores": scores.cpu().numpy().astype(np.float32),
+            "descriptors": desc.cpu().numpy().astype(np.float32),
+            "global_descriptor": out["global_descriptor"][0].cpu().numpy().astype(np.float32),
+        }

@@ -1,0 +1,93 @@
+"""UWNet behind the extractor contract: export/load round trip, outputs, bad inputs with one clear sentence."""
+
+import numpy as np
+import pytest
+import torch
+
+from ruslam import load_extractor
+from ruslam.models.export import export_weights, load_uwnet
+from ruslam.models.uwnet import UWNet
+from ruslam.models.uwnet_extractor import UWNetExtractor
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    torch.manual_seed(0)
+    net = UWNet(descriptor_dim=64, head_channels=16, vlad_dim=8)
+    with torch.no_grad():  # non-trivial BN statistics so the round trip checks buffers too
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.1, 0.1)
+                m.running_var.uniform_(0.5, 1.5)
+    path = tmp_path_factory.mktemp("w") / "uwnet.pt"
+    export_weights(net, path)
+    return path, net.eval()
+
+
+def test_export_is_fp16_weights_only_and_round_trips(weights):
+    path, net = weights
+    raw = torch.load(path, weights_only=True)
+    assert raw["format"] == "ruslam-uwnet"
+    assert all(v.dtype == torch.float16 for v in raw["state_dict"].values() if v.is_floating_point())
+    loaded = load_uwnet(path)
+    x = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        a, b = net(x), loaded(x)
+    for key in a:  # fp16 storage: close, not bit-equal
+        torch.testing.assert_close(a[key], b[key], atol=2e-2, rtol=2e-2)
+
+
+def test_extract_contract_and_resize_mapping(weights):
+    path, _ = weights
+    ext = load_extractor(path, max_keypoints=50, detection_threshold=0.0, resize_max=None)
+    img = (np.random.default_rng(0).random((96, 128, 3)) * 255).astype(np.uint8)
+    out = ext.extract(img)
+    n = len(out["keypoints"])
+    assert n == 50 and out["scores"].shape == (n,) and out["descriptors"].shape == (n, 64)
+    assert out["global_descriptor"].shape == (4096,)
+    np.testing.assert_allclose(np.linalg.norm(out["descriptors"], axis=1), 1.0, rtol=1e-4)
+    kp = out["keypoints"]
+    assert (kp >= 0).all() and (kp[:, 0] <= 127).all() and (kp[:, 1] <= 95).all()
+    # Grey float input works; an image twice the size, resized back by resize_max, gives keypoints twice as far.
+    assert ext.extract(img.mean(axis=2).astype(np.float32) / 255)["descriptors"].shape[1] == 64
+    big = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)
+    small = UWNetExtractor.from_file(path, max_keypoints=0, detection_threshold=0.002, resize_max=None).extract(img)
+    big_kp = UWNetExtractor.from_file(path, max_keypoints=0, detection_threshold=0.002, resize_max=128).extract(big)
+    expected = (small["keypoints"] + 0.5) * 2 - 0.5
+    assert len(expected) > 5
+    np.testing.assert_allclose(np.unique(big_kp["keypoints"], axis=0), np.unique(expected, axis=0), atol=1e-4)
+
+
+def test_missing_checkpoint(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        UWNetExtractor.from_file(tmp_path / "nope.pt")
+
+
+def test_checkpoint_of_another_architecture(tmp_path):
+    path = tmp_path / "other.pt"
+    torch.save(torch.nn.Linear(3, 4).state_dict(), path)
+    with pytest.raises(ValueError, match="is not a UWNet weights file"):
+        UWNetExtractor.from_file(path)
+    wrong = tmp_path / "wrong_shapes.pt"
+    export_weights(UWNet(head_channels=16, vlad_dim=8), wrong)
+    raw = torch.load(wrong, weights_only=True)
+    raw["config"]["head_channels"] = 32
+    torch.save(raw, wrong)
+    with pytest.raises(ValueError, match="does not match the UWNet architecture"):
+        UWNetExtractor.from_file(wrong)
+
+
+def test_checkpoint_of_another_descriptor_width(weights):
+    with pytest.raises(ValueError, match="has 64-d descriptors, but 256-d were requested"):
+        UWNetExtractor.from_file(weights[0], descriptor_dim=256)
+
+
+@pytest.mark.parametrize(("image", "message"), [
+    (np.zeros((64, 64, 3), np.int32), "dtype int32"),
+    (np.zeros((64, 64, 4), np.uint8), "HxW or HxWx3"),
+    (np.full((64, 64), np.nan, np.float32), "NaN"),
+])
+def test_bad_images(weights, image, message):
+    ext = UWNetExtractor.from_file(weights[0])
+    with pytest.raises(ValueError, match=message):
+        ext.extract(image)
