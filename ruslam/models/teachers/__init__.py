@@ -1,0 +1,55 @@
+"""Frozen teachers of the distillation (paper 3.2): a local one (keypoints + dense descriptors) and a global one.
+
+`Teacher` pairs them into the one module the cache runs: image [B, 3, H, W] in [0, 1] ->
+``keypoint_logits`` [B, 65, H/8, W/8], ``dense_descriptors`` [B, D, H/8, W/8], ``global_descriptor`` [B, G].
+Offline default: XFeat + VLAD (`conf/teacher/xfeat_vlad.yaml`); paper: SuperPoint + NetVLAD.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+
+
+class Teacher(nn.Module):
+    """`local(image) -> {keypoint_logits, dense_descriptors}` plus `global_head(image, local_outputs) -> [B, G]`."""
+
+    def __init__(self, local: nn.Module, global_head: nn.Module):
+        super().__init__()
+        self.local, self.global_head = local, global_head
+        self.eval().requires_grad_(False)
+
+    def train(self, mode: bool = True):  # frozen: never leaves eval mode
+        return super().train(False)
+
+    @property
+    def descriptor_dim(self) -> int:
+        return self.local.descriptor_dim
+
+    @torch.no_grad()
+    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        out = dict(self.local(image))
+        out["global_descriptor"] = self.global_head(image, out)
+        return out
+
+    def prepare(self, dataset, cache_dir: str | Path) -> None:
+        """Fit what depends on the training data (the VLAD codebook, saved beside the cache) before caching."""
+        if hasattr(self.global_head, "prepare"):
+            self.global_head.prepare(self.local, dataset, cache_dir)
+
+    def fingerprint(self, extra: dict | None = None) -> str:
+        return module_fingerprint(self, extra)
+
+
+def module_fingerprint(module: nn.Module, extra: dict | None = None) -> str:
+    """sha256 of a module's architecture (repr), every weight and buffer (so a VLAD codebook too) and `extra`."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps({"module": repr(module), "extra": extra or {}}, sort_keys=True, default=str).encode())
+    for key, value in sorted(module.state_dict().items()):
+        digest.update(key.encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
