@@ -1,0 +1,61 @@
+import numpy as np
+import pytest
+import torch
+
+from ruslam.models.teachers.vlad import VLAD, fit_codebook, save_codebook, vlad_aggregate
+
+
+def reference_vlad(dense: np.ndarray, codebook: np.ndarray, power=0.5) -> np.ndarray:
+    """Plain loops from the VLAD definition, for one image [D, h, w]."""
+    x = dense.reshape(dense.shape[0], -1).T
+    blocks = np.zeros_like(codebook)
+    for v in x:
+        k = np.argmin(((codebook - v) ** 2).sum(1))
+        blocks[k] += v - codebook[k]
+    for k in range(len(blocks)):
+        n = np.linalg.norm(blocks[k])
+        blocks[k] = blocks[k] / n if n > 0 else 0
+    out = np.sign(blocks) * np.abs(blocks) ** power
+    out = out.ravel()
+    return out / np.linalg.norm(out)
+
+
+def test_aggregation_matches_the_definition():
+    rng = np.random.default_rng(0)
+    dense = rng.normal(size=(2, 6, 5, 7)).astype(np.float32)
+    codebook = rng.normal(size=(5, 6)).astype(np.float32)
+    codebook[4] = 100.0  # a centre no descriptor is assigned to: its block stays zero
+    out = vlad_aggregate(torch.from_numpy(dense), torch.from_numpy(codebook)).numpy()
+    assert out.shape == (2, 30)
+    for i in range(2):
+        np.testing.assert_allclose(out[i], reference_vlad(dense[i], codebook), atol=1e-5)
+    assert np.all(out[:, 24:] == 0)
+
+
+def test_kmeans_is_seeded_and_finds_separated_centres():
+    rng = np.random.default_rng(1)
+    true = rng.normal(size=(4, 3)) * 10
+    data = np.concatenate([c + 0.1 * rng.normal(size=(50, 3)) for c in true])
+    a, b = fit_codebook(data, 4, seed=3), fit_codebook(data, 4, seed=3)
+    np.testing.assert_array_equal(a, b)
+    assert a.dtype == np.float32 and a.shape == (4, 3)
+    nearest = np.sqrt(((a[:, None] - true[None]) ** 2).sum(-1)).min(1)
+    assert np.all(nearest < 0.1)
+    with pytest.raises(ValueError, match="at least 64 descriptors"):
+        fit_codebook(data[:10], 64)
+
+
+def test_codebook_files_are_validated(tmp_path):
+    good = np.random.default_rng(0).normal(size=(4, 8)).astype(np.float32)
+    save_codebook(good, tmp_path / "cb.npy")
+    head = VLAD(num_clusters=4, dim=8, codebook=str(tmp_path / "cb.npy"))
+    assert head.fitted and torch.equal(head.codebook, torch.from_numpy(good))
+    with pytest.raises(ValueError, match=r"has shape \(4, 8\), expected finite \(64, 64\)"):
+        VLAD(codebook=str(tmp_path / "cb.npy"))
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        VLAD(codebook=str(tmp_path / "nope.npy"))
+    (tmp_path / "junk.npy").write_bytes(b"not numpy")
+    with pytest.raises(ValueError, match="not a readable .npy array"):
+        VLAD(num_clusters=4, dim=8, codebook=str(tmp_path / "junk.npy"))
+    with pytest.raises(RuntimeError, match="codebook is not fitted"):
+        VLAD(num_clusters=4, dim=8)(None, {"dense_descriptors": torch.rand(1, 8, 2, 2)})
