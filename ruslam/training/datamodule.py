@@ -1,0 +1,145 @@
+"""`DistillationDataModule`: in-air RGB-D source + cached teacher targets -> (degraded student input, targets).
+
+The teacher sees the clean in-air image once (`prepare_data` builds the HDF5 cache); every training sample then
+pairs those cached targets with a pseudo-underwater version of the image (synthesis on the student input only,
+seeded by (seed, epoch, index) so a run is reproducible yet sees new water every epoch), photometric jitter, and the
+geometric warp that moves the targets with it (`ruslam.training.augment`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import DataLoader, Dataset
+
+from ruslam.training.augment import seeded_generator, warp_image, warp_targets
+
+
+def _plain(conf) -> dict | None:
+    if conf is None:
+        return None
+    return OmegaConf.to_container(conf, resolve=True) if isinstance(conf, DictConfig) else dict(conf)
+
+
+def _build(conf):
+    return None if conf is None else instantiate(conf)
+
+
+class DistillationDataset(Dataset):
+    def __init__(self, source, indices, cache, synthesis=None, photometric=None, geometric=None, seed=0,
+                 vary_per_epoch=True):
+        self.source, self.indices, self.cache = source, list(indices), cache
+        self.synthesis, self.photometric, self.geometric = synthesis, photometric, geometric
+        self.seed, self.vary_per_epoch, self.epoch = seed, vary_per_epoch, 0
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        index = self.indices[i]
+        item = self.source[index]
+        targets = {k: torch.from_numpy(v) for k, v in self.cache.read(str(item["id"])).items()}
+        rgb = torch.from_numpy(np.ascontiguousarray(item["image"], np.float32)).permute(2, 0, 1)
+        epoch = self.epoch if self.vary_per_epoch else 0
+        if self.synthesis is not None:
+            depth = np.asarray(item["depth"], np.float32)
+            finite = np.isfinite(depth)
+            far = float(depth[finite].max()) if finite.any() else 10.0
+            depth = torch.from_numpy(np.where(finite, depth, far).astype(np.float32))
+            rgb = self.synthesis(rgb[None], depth[None], [index + epoch * len(self.source)])[0].float()
+        gen = seeded_generator(self.seed, epoch, index)
+        if self.photometric is not None:
+            rgb = self.photometric(rgb, gen)
+        if self.geometric is not None:
+            hom = self.geometric.sample(rgb.shape[1], rgb.shape[2], gen)
+            rgb = warp_image(rgb, hom)
+            targets = warp_targets(targets, hom)
+        else:
+            targets["mask"] = torch.ones(targets["keypoint_logits"].shape[1:])
+        return {"image": rgb, **targets}
+
+
+class _Preloaded:
+    """The source's samples kept in memory: procedural rendering then happens once, not every epoch."""
+
+    def __init__(self, source):
+        self.items = [source[i] for i in range(len(source))]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict:
+        return self.items[i]
+
+
+class DistillationDataModule(pl.LightningDataModule):
+    """Configs (not objects) for source/teacher/synthesis/augmentations, built lazily in each process."""
+
+    def __init__(self, source: dict, teacher: dict, cache_root: str = ".cache/ruslam/teacher", val_size: int = 32,
+                 split_seed: int = 0, batch_size: int = 16, num_workers: int = 0, seed: int = 0, preload: bool = True,
+                 synthesis: dict | None = None, photometric: dict | None = None, geometric: dict | None = None,
+                 teacher_batch_size: int = 8):
+        super().__init__()
+        self.source_conf, self.teacher_conf = _plain(source), _plain(teacher)
+        self.synthesis_conf, self.photometric_conf = _plain(synthesis), _plain(photometric)
+        self.geometric_conf = _plain(geometric)
+        self.val_size, self.split_seed, self.batch_size = val_size, split_seed, batch_size
+        self.num_workers, self.seed, self.preload = num_workers, seed, preload
+        self.teacher_batch_size = teacher_batch_size
+        key = json.dumps({"source": self.source_conf, "teacher": self.teacher_conf}, sort_keys=True, default=str)
+        self.cache_dir = Path(cache_root) / hashlib.sha1(key.encode()).hexdigest()[:12]
+        self.train_set: DistillationDataset | None = None
+        self.val_set: DistillationDataset | None = None
+
+    def _source(self):
+        source = instantiate(self.source_conf)
+        if len(source) <= self.val_size:
+            raise ValueError(f"The RGB-D source has {len(source)} images; it needs more than val_size={self.val_size}.")
+        return source
+
+    def prepare_data(self) -> None:
+        from ruslam.data.teacher_cache import build_cache  # noqa: PLC0415 (teacher stack only when caching)
+
+        teacher = instantiate(self.teacher_conf)
+        build_cache(self._source(), teacher, self.cache_dir, config={"source": self.source_conf},
+                    batch_size=self.teacher_batch_size)
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        from ruslam.data.teacher_cache import TeacherCache  # noqa: PLC0415
+
+        source = self._source()
+        first = source[0]["image"]
+        if first.shape[0] % 8 or first.shape[1] % 8:
+            raise ValueError(f"Training images must have height and width multiples of 8, got {first.shape[:2]}.")
+        if self.preload:
+            source = _Preloaded(source)
+        cache = TeacherCache(self.cache_dir)
+        order = np.random.default_rng(self.split_seed).permutation(len(source))
+        val_idx, train_idx = sorted(order[: self.val_size].tolist()), sorted(order[self.val_size:].tolist())
+        synthesis, photometric = _build(self.synthesis_conf), _build(self.photometric_conf)
+        geometric = _build(self.geometric_conf)
+        self.train_set = DistillationDataset(source, train_idx, cache, synthesis, photometric, geometric, self.seed)
+        # Held-out set: same degradations and warps, but fixed per image so epochs compare like with like.
+        self.val_set = DistillationDataset(source, val_idx, cache, synthesis, None, geometric, self.seed + 1,
+                                           vary_per_epoch=False)
+
+    def set_epoch(self, epoch: int) -> None:
+        if self.train_set is not None:
+            self.train_set.epoch = epoch
+
+    def train_dataloader(self) -> DataLoader:
+        drop_last = len(self.train_set) > self.batch_size  # a tiny set still gives one (smaller) batch
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, drop_last=drop_last,
+                          num_workers=self.num_workers, persistent_workers=False)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers)

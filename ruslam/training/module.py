@@ -1,0 +1,69 @@
+"""`DistillationModule`: the LightningModule that trains a plain UWNet against cached teacher targets (eq. 8)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytorch_lightning as pl
+import torch
+
+from ruslam.models.distillation_loss import DistillationLoss
+from ruslam.models.uwnet import UWNet
+
+TARGET_KEYS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
+
+
+class NonFiniteLossError(FloatingPointError):
+    """Raised when the distillation loss becomes NaN or infinite, so training stops instead of wasting hours."""
+
+
+class DistillationModule(pl.LightningModule):
+    def __init__(self, net: UWNet, optimizer: Callable, loss: DistillationLoss | None = None):
+        super().__init__()
+        self.net = net
+        self.loss = loss if loss is not None else DistillationLoss()
+        self.optimizer_factory = optimizer
+
+    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.net(image)
+
+    def _check_targets(self, batch: dict) -> None:
+        want = self.net.config["descriptor_dim"]
+        got = batch["dense_descriptors"].shape[1]
+        if got != want:
+            raise ValueError(f"The teacher targets have {got}-d local descriptors but the student is built with "
+                             f"descriptor_dim={want}; set model.net.descriptor_dim={got}.")
+
+    def on_train_epoch_start(self) -> None:
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if hasattr(datamodule, "set_epoch"):  # new water, noise and warps every epoch, still seeded
+            datamodule.set_epoch(self.current_epoch)
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        self._check_targets(batch)
+        out = self.loss(self.net(batch["image"]), batch, batch.get("mask"))
+        if not torch.isfinite(out["total"]):
+            terms = ", ".join(f"{k}={out[k].item():.4g}" for k in ("global", "local", "detector"))
+            raise NonFiniteLossError(
+                f"Training stopped at epoch {self.current_epoch}, step {self.global_step}: the distillation loss is "
+                f"{out['total'].item()} ({terms}); lower the learning rate or check the data and teacher cache.")
+        bs = batch["image"].shape[0]
+        self.log("train/loss", out["total"], prog_bar=True, batch_size=bs)
+        for key in ("global", "local", "detector", "alpha", "beta", "gamma"):
+            self.log(f"train/{key}", out[key], batch_size=bs)
+        return out["total"]
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        self._check_targets(batch)
+        out = self.loss(self.net(batch["image"]), batch, batch.get("mask"))
+        bs = batch["image"].shape[0]
+        for key in ("global", "local", "detector"):
+            self.log(f"val/{key}", out[key], batch_size=bs, sync_dist=True)
+        self.log("val/loss", out["total"], prog_bar=True, batch_size=bs, sync_dist=True)
+
+    def configure_optimizers(self):
+        return self.optimizer_factory(params=self.parameters())
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # Lets `export` rebuild the network from a Lightning checkpoint without the Hydra config.
+        checkpoint["uwnet_config"] = dict(self.net.config)
