@@ -4,8 +4,8 @@ Layout of ``cache_dir``:
 
 - ``teacher.json``: the teacher fingerprint (weights, VLAD codebook and the caller's settings hashed) and settings;
   a cache built by another teacher configuration is refused.
-- ``shard-<uuid>.h5``: committed shards (``libver="latest"``), one group per image id (``/`` escaped as ``%2F``),
-  one chunked, compressed dataset per key (``keypoint_logits`` [65, h, w], ``dense_descriptors`` [D, h, w],
+- ``shard-rank<r>-<uuid>.h5``: committed shards (``libver="latest"``), one group per image id (``/`` escaped
+  as ``%2F``), one chunked, compressed dataset per key (``keypoint_logits`` [65, h, w], ``dense_descriptors`` [D, h, w],
   ``global_descriptor`` [G]), optionally float16; the fingerprint is also in each shard's attributes.
 - ``.tmp-<pid>-<uuid>.h5``: the shard a running process is filling. It is closed and renamed to ``shard-*``
   every `commit_every` images (an atomic rename), so a killed run loses at most its last uncommitted images and
@@ -158,6 +158,7 @@ class CacheWriter(BasePredictionWriter):
         self._tmp: Path | None = None
         self._count = 0
         self.written = 0
+        self.rank = 0
 
     def _open(self) -> h5py.File:
         if self._file is None:
@@ -171,7 +172,7 @@ class CacheWriter(BasePredictionWriter):
         if self._file is None:
             return
         self._file.close()
-        os.replace(self._tmp, self.cache_dir / f"shard-{uuid.uuid4().hex}.h5")
+        os.replace(self._tmp, self.cache_dir / f"shard-rank{self.rank}-{uuid.uuid4().hex}.h5")
         self._file, self._tmp = None, None
 
     def discard(self) -> None:
@@ -186,10 +187,13 @@ class CacheWriter(BasePredictionWriter):
     def write_on_batch_end(self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx):
         if prediction is None:
             return
+        self.rank = trainer.global_rank
         try:
             for i, image_id in enumerate(prediction["ids"]):
+                if group_name(image_id) in self._open():  # a distributed sampler may repeat an image to pad
+                    continue
                 arrays = {key: prediction[key][i].numpy() for key in prediction if key != "ids"}
-                _write_group(self._open(), image_id, arrays, self.float16, self.compression)
+                _write_group(self._file, image_id, arrays, self.float16, self.compression)
                 self._count += 1
                 self.written += 1
                 if self._count >= self.commit_every:
@@ -303,5 +307,6 @@ def build_cache(
                              logger=False, enable_checkpointing=False, enable_progress_bar=False,
                              enable_model_summary=False)
         trainer.predict(_TeacherPredictor(teacher), dataloaders=loader, return_predictions=False)
+        trainer.strategy.barrier("teacher_cache_committed")  # every rank's last shard is committed before reading
     return TeacherCache(cache_dir, fingerprint)
 
