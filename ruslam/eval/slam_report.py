@@ -1,0 +1,292 @@
+"""`python evaluate.py task=slam`: paper Tables 3-5 (APE / RPE per sequence x method) and the turbidity sweep.
+
+For every sequence of ``cfg.dataset`` and every extractor of ``cfg.extractors`` the SLAM runs once
+(`ruslam.slam.system.run`); the estimate is scored with evo (`ruslam.eval.trajectory`, Sim3 alignment for
+monocular, SE3 for stereo, RPE over 0.1 m). A run fails (x) when it tracks too few frames or its aligned
+trajectory leaves the ground truth's bounding box by more than a margin (paper: "too short or diverges"), and
+'Avg' is the mean over the sequences on which every compared method succeeds. Writes into ``cfg.out_dir``:
+``table.md``/``table.csv``, ``runs.md``/``runs.csv`` (runtime, frames/s, keyframes, loops per run),
+``trajectories/<sequence>/<method>.txt`` (TUM), ``plots/<sequence>.png`` (top view, ground truth vs each method),
+and for the embedded synthetic sequences ``sweep.png`` (APE, RPE and tracked fraction per water type).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from hydra.utils import get_method, instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from ruslam.eval.trajectory import evaluate_trajectory
+from ruslam.slam.readers import Trajectory, write_tum_trajectory
+
+FAIL = "×"
+METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked"}
+
+
+@dataclass
+class RunResult:
+    sequence: str
+    method: str
+    ok: bool
+    reason: str  # why the run failed ("" on success)
+    ape: float = math.nan  # m, RMSE after alignment
+    rpe: float = math.nan  # m, RMSE over 0.1 m
+    tracked: float = 0.0  # fraction of the sequence's frames with a pose
+    frames: int = 0
+    runtime_s: float = 0.0
+    fps: float = 0.0
+    keyframes: int = 0
+    loops: int = 0
+
+
+# ------------------------------------------------------------------------------------------- failure and Avg
+
+
+def failure_reason(tracked: float, aligned_xyz: np.ndarray | None, reference_xyz: np.ndarray, rule) -> str:
+    """"" when the run counts, else why not: tracked fraction below ``rule.min_tracked``, or an aligned position
+    farther than ``rule.bound_margin_m`` outside the ground truth's axis-aligned bounding box (divergence)."""
+    if tracked < rule.min_tracked:
+        return f"tracked {tracked:.0%} of frames < {rule.min_tracked:.0%}"
+    if aligned_xyz is None or len(aligned_xyz) == 0:
+        return "no pose matched the ground truth"
+    margin = rule.get("bound_margin_m") if hasattr(rule, "get") else getattr(rule, "bound_margin_m", None)
+    if margin is not None:
+        lo, hi = reference_xyz.min(axis=0) - margin, reference_xyz.max(axis=0) + margin
+        outside = np.maximum(lo - aligned_xyz, aligned_xyz - hi).max()
+        if outside > 0:
+            return f"diverged: {outside:.2f} m beyond the ground-truth box + {margin} m"
+    return ""
+
+
+def average_over_common_successes(results: list[RunResult], sequences: list[str], methods: list[str],
+                                  metrics: list[str]) -> tuple[dict, list[str]]:
+    """{(method, metric): mean} over the sequences where every method succeeded, and those sequences."""
+    by_key = {(r.sequence, r.method): r for r in results}
+    common = [s for s in sequences if all(by_key.get((s, m)) is not None and by_key[(s, m)].ok for m in methods)]
+    avg = {(m, k): (float(np.mean([getattr(by_key[(s, m)], k) for s in common])) if common else math.nan)
+           for m in methods for k in metrics}
+    return avg, common
+
+
+def _cell(value: float, metric: str) -> str:
+    if value is None or not np.isfinite(value):
+        return FAIL
+    return f"{100 * value:.0f}%" if metric == "tracked" else f"{value:.3f}"
+
+
+def results_table(results: list[RunResult], sequences: list[str], methods: list[str], metrics: list[str],
+                  labels: dict, title: str, row_label: str = "Sequence") -> tuple[str, str]:
+    """(markdown, csv) in the paper's layout: one row per sequence + Avg, one column per method (x metric);
+    failed runs are x, the best value of a row is bold (lowest error, highest tracked fraction)."""
+    by_key = {(r.sequence, r.method): r for r in results}
+    avg, common = average_over_common_successes(results, sequences, methods, metrics)
+    rows = []
+    for s in sequences:
+        rows.append((s, {(m, k): (getattr(by_key[(s, m)], k) if (s, m) in by_key and by_key[(s, m)].ok else None)
+                         for m in methods for k in metrics}))
+    rows.append(("Avg", {key: (v if common else None) for key, v in avg.items()}))
+    header = [row_label] + [f"{labels.get(m, m)} {METRICS[k]}" if len(metrics) > 1 else labels.get(m, m)
+                            for m in methods for k in metrics]
+    md = [f"### {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out = io.StringIO()
+    writer = csv.writer(out)
+    writer.writerow([row_label] + [f"{m}_{k}" for m in methods for k in metrics])
+    for name, values in rows:
+        cells = []
+        for k in metrics:
+            ok = [v for (m, kk), v in values.items() if kk == k and v is not None and np.isfinite(v)]
+            best = (max(ok) if k == "tracked" else min(ok)) if len(ok) > 1 else None
+            for m in methods:
+                v = values[(m, k)]
+                text = _cell(v, k)
+                cells.append((m, k, f"**{text}**" if best is not None and v == best else text))
+        order = {(m, k): c for m, k, c in cells}
+        md.append("| " + " | ".join([name] + [order[(m, k)] for m in methods for k in metrics]) + " |")
+        writer.writerow([name] + ["x" if values[(m, k)] is None or not np.isfinite(values[(m, k)])
+                                  else f"{values[(m, k)]:.6g}" for m in methods for k in metrics])
+    md += ["", f"{FAIL} = failure (too few frames tracked or trajectory diverged). Avg over the sequences where "
+               f"every method succeeds: {', '.join(common) if common else 'none'}."]
+    return "\n".join(md) + "\n", out.getvalue()
+
+
+def runs_table(results: list[RunResult], labels: dict) -> tuple[str, str]:
+    head = ["sequence", "method", "status", "frames", "tracked", "runtime_s", "fps", "keyframes", "loops"]
+    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out = io.StringIO()
+    writer = csv.writer(out)
+    writer.writerow(head + ["ape", "rpe", "reason"])
+    for r in results:
+        status = "ok" if r.ok else f"{FAIL} {r.reason}"
+        md.append(f"| {r.sequence} | {labels.get(r.method, r.method)} | {status} | {r.frames} | {r.tracked:.0%} | "
+                  f"{r.runtime_s:.1f} | {r.fps:.2f} | {r.keyframes} | {r.loops} |")
+        writer.writerow([r.sequence, r.method, "ok" if r.ok else "x", r.frames, f"{r.tracked:.4f}",
+                         f"{r.runtime_s:.2f}", f"{r.fps:.3f}", r.keyframes, r.loops, f"{r.ape:.6g}", f"{r.rpe:.6g}",
+                         r.reason])
+    return "\n".join(md) + "\n", out.getvalue()
+
+
+# --------------------------------------------------------------------------------------------------- plots
+
+
+def plot_top_view(path: Path, title: str, reference_xyz: np.ndarray, estimates: dict[str, np.ndarray]) -> None:
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, ax = plt.subplots(figsize=(6, 5))
+    ax.plot(reference_xyz[:, 0], reference_xyz[:, 1], "k--", lw=1.5, label="ground truth")
+    for name, xyz in estimates.items():
+        ax.plot(xyz[:, 0], xyz[:, 1], lw=1.2, label=name)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set(title=title, xlabel="x [m]", ylabel="y [m]")
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_sweep(path: Path, results: list[RunResult], levels: list[str], methods: list[str], labels: dict) -> None:
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    by_key = {(r.sequence, r.method): r for r in results}
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    x = np.arange(len(levels))
+    for m in methods:
+        runs = [by_key.get((s, m)) for s in levels]
+        for ax, k in zip(axes, ("ape", "rpe", "tracked"), strict=True):
+            y = [getattr(r, k) if r is not None and (r.ok or k == "tracked") else np.nan for r in runs]
+            line, = ax.plot(x, y, "o-", label=labels.get(m, m))
+            failed = [i for i, r in enumerate(runs) if r is not None and not r.ok and k != "tracked"]
+            ax.plot(failed, [0] * len(failed), "x", color=line.get_color(), ms=10, mew=2)
+    for ax, k in zip(axes, ("ape", "rpe", "tracked"), strict=True):
+        ax.set_xticks(x, levels, rotation=30)
+        ax.set_ylabel({"ape": "APE RMSE [m]", "rpe": "RPE RMSE [m] (0.1 m)", "tracked": "tracked fraction"}[k])
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Turbidity sweep on the synthetic seafloor (x on the axis = failed run)")
+    _save(fig, path)
+
+
+def _save(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.tight_layout()
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------------------------------- run
+
+
+def open_sequence(dataset: DictConfig, name: str, entry: str):
+    """Build one sequence with the dataset's reader; a missing dataset gives one sentence on where to get it."""
+    reader = instantiate(dataset.reader)
+    root = dataset.get("root", "__embedded__")
+    if root == "__embedded__":
+        return reader(entry)
+    path = Path(str(root)) / entry if root else None
+    if path is None or not path.exists():
+        raise FileNotFoundError(f"Dataset {dataset.label} not found: sequence {name} expected at "
+                                f"{path if path else '<dataset.root>/' + entry}. {dataset.download} Then pass "
+                                f"dataset.root=<folder>.")
+    return reader(path)
+
+
+def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delta: float) -> tuple[RunResult, dict]:
+    """Score one SLAM output (anything with timestamps, poses, num_frames, timings, num_keyframes, loops)."""
+    runtime = float(np.sum(estimate.timings))
+    frames = int(estimate.num_frames)
+    tracked = len(estimate.timestamps) / max(frames, 1)
+    base = dict(sequence=sequence.name, method=method, tracked=tracked, frames=frames, runtime_s=runtime,
+                fps=frames / runtime if runtime > 0 else 0.0, keyframes=int(getattr(estimate, "num_keyframes", 0)),
+                loops=len(getattr(estimate, "loops", [])))
+    gt = sequence.groundtruth
+    errors, reason = None, ""
+    if gt is None:
+        reason = "the sequence has no ground truth"
+    elif len(estimate.timestamps) >= 3:
+        try:
+            errors = evaluate_trajectory(Trajectory(estimate.timestamps, estimate.poses), gt, alignment, rpe_delta)
+        except ValueError as err:
+            reason = str(err)
+    if not reason:
+        aligned = errors.aligned.positions_xyz if errors else None
+        reason = failure_reason(tracked, aligned, gt.positions, rule)
+    if reason:
+        return RunResult(ok=False, reason=reason, **base), {}
+    return (RunResult(ok=True, reason="", ape=errors.ape_rmse, rpe=errors.rpe_rmse, **base),
+            {"aligned": errors.aligned.positions_xyz, "reference": errors.reference.positions_xyz})
+
+
+def run(cfg: DictConfig, slam_run=None) -> dict:
+    """Every sequence x extractor, the tables, plots and (embedded sequences) the turbidity sweep."""
+    from ruslam.eval.matching_report import resolve_extractors  # noqa: PLC0415 (shared name -> extractor rules)
+
+    task, dataset = cfg.task, cfg.dataset
+    out_dir = Path(cfg.out_dir)
+    slam_run = slam_run or get_method(task.slam_runner)
+    labels = dict(task.get("labels") or {})
+    sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
+    sequences = sequences if isinstance(sequences, dict) else {str(s): str(s) for s in sequences}
+    opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
+    extractors, skipped = resolve_extractors(list(cfg.extractors), task)
+    methods = list(extractors)
+    results, curves = [], {}
+    for name, seq in opened.items():
+        seq.name = name
+        for method, extractor in extractors.items():
+            estimate = slam_run(seq, extractor, cfg.slam)
+            if len(estimate.timestamps):
+                write_tum_trajectory(_mkdir(out_dir / "trajectories" / name) / f"{method}.txt",
+                                     Trajectory(estimate.timestamps, estimate.poses))
+            result, curve = evaluate_run(seq, estimate, method, dataset.alignment, task.failure, task.rpe_delta)
+            results.append(result)
+            curves.setdefault(name, {})[method] = curve
+            print(f"[slam] {name} / {method}: " + (f"APE {result.ape:.3f} m, RPE {result.rpe:.3f} m" if result.ok
+                  else f"{FAIL} {result.reason}") + f", tracked {result.tracked:.0%}, {result.fps:.1f} frames/s")
+        ref = opened[name].groundtruth
+        if ref is not None:
+            plot_top_view(out_dir / "plots" / f"{name}.png", f"{dataset.label}: {name}", ref.positions,
+                          {labels.get(m, m): c["aligned"] for m, c in curves.get(name, {}).items() if c})
+    metrics = list(dataset.metrics)
+    title = f"{dataset.label}: RMSE of {' and '.join(METRICS[k] for k in metrics)} (m)"
+    md, table_csv = results_table(results, list(sequences), methods, metrics, labels, title,
+                                  row_label=dataset.get("row_label", "Sequence"))
+    if skipped:
+        md += "\nSkipped:\n" + "".join(f"- {labels.get(n, n)} (`{n}`): {why}\n" for n, why in skipped.items())
+    _atomic_write(out_dir / "table.md", md)
+    _atomic_write(out_dir / "table.csv", table_csv)
+    runs_md, runs_csv = runs_table(results, labels)
+    _atomic_write(out_dir / "runs.md", runs_md)
+    _atomic_write(out_dir / "runs.csv", runs_csv)
+    if dataset.get("sweep", False) and methods:
+        plot_sweep(out_dir / "sweep.png", results, list(sequences), methods, labels)
+    summary = {"results": [asdict(r) for r in results], "skipped": skipped, "table": md}
+    _atomic_write(out_dir / "results.json", json.dumps(summary, indent=2, default=float))
+    print(md)
+    return summary
+
+
+def _mkdir(path: Path) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    return path

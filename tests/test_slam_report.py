@@ -1,0 +1,110 @@
+"""task=slam: the failure rule, the Avg-over-common-successes rule and the report files."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from conftest import compose
+
+from ruslam.eval.slam_report import (
+    RunResult,
+    average_over_common_successes,
+    failure_reason,
+    results_table,
+)
+
+RULE = SimpleNamespace(min_tracked=0.8, bound_margin_m=1.0)
+
+
+def test_failure_rule():
+    ref = np.array([[0, 0, 0], [4, 0, 0], [4, 3, 1.0]])
+    assert failure_reason(1.0, ref + 0.1, ref, RULE) == ""
+    assert "tracked 50%" in failure_reason(0.5, ref, ref, RULE)
+    far = ref.copy()
+    far[1, 0] = 6.5  # 2.5 m beyond x_max = 4, margin 1 m
+    assert "diverged: 1.50 m" in failure_reason(1.0, far, ref, RULE)
+    assert failure_reason(1.0, far, ref, SimpleNamespace(min_tracked=0.8, bound_margin_m=None)) == ""
+    assert failure_reason(0.9, None, ref, RULE) == "no pose matched the ground truth"
+
+
+def _results():
+    ok = lambda s, m, ape, rpe: RunResult(s, m, True, "", ape=ape, rpe=rpe, tracked=1.0)  # noqa: E731
+    return [ok("01", "orb", 0.10, 0.02), ok("01", "uwnet", 0.05, 0.01),
+            RunResult("02", "orb", False, "tracked 10%", tracked=0.1), ok("02", "uwnet", 0.40, 0.30),
+            ok("03", "orb", 0.30, 0.04), ok("03", "uwnet", 0.20, 0.03)]
+
+
+def test_avg_is_over_sequences_where_every_method_succeeds():
+    avg, common = average_over_common_successes(_results(), ["01", "02", "03"], ["orb", "uwnet"], ["ape", "rpe"])
+    assert common == ["01", "03"]
+    assert avg[("orb", "ape")] == pytest.approx(0.20) and avg[("uwnet", "ape")] == pytest.approx(0.125)
+    assert avg[("uwnet", "rpe")] == pytest.approx(0.02)  # 02's 0.30 is left out although uwnet succeeded there
+    none_common, common = average_over_common_successes(_results()[2:4], ["02"], ["orb", "uwnet"], ["ape"])
+    assert common == [] and math.isnan(none_common[("uwnet", "ape")])
+
+
+def test_table_layout_marks_failures_and_best():
+    md, table = results_table(_results(), ["01", "02", "03"], ["orb", "uwnet"], ["ape", "rpe"],
+                              {"orb": "ORB", "uwnet": "UWNet"}, "AQUALOC")
+    lines = md.splitlines()
+    assert "| Sequence | ORB APE | ORB RPE | UWNet APE | UWNet RPE |" in lines
+    assert "| 02 | × | × | 0.400 | 0.300 |" in lines
+    assert "| 01 | 0.100 | 0.020 | **0.050** | **0.010** |" in lines
+    assert "| Avg | 0.200 | 0.030 | **0.125** | **0.020** |" in lines
+    rows = table.splitlines()
+    assert rows[0] == "Sequence,orb_ape,orb_rpe,uwnet_ape,uwnet_rpe" and rows[2] == "02,x,x,0.4,0.3"
+    md3, _ = results_table(_results(), ["01", "02", "03"], ["orb", "uwnet"], ["ape"], {}, "EuRoC")
+    assert "| Sequence | orb | uwnet |" in md3.splitlines()  # Table 3: one APE column per method
+
+
+@dataclass
+class FakeEstimate:
+    timestamps: np.ndarray
+    poses: np.ndarray
+    num_frames: int
+    timings: np.ndarray
+    num_keyframes: int = 3
+    loops: list = field(default_factory=list)
+
+
+def fake_slam(sequence, extractor, cfg):
+    """Ground truth seen through a scale of 0.5 plus 1 cm noise (ORB) or tracking lost after 30% (others)."""
+    gt = sequence.groundtruth
+    n = len(sequence)
+    poses = gt.poses.copy()
+    poses[:, :3, 3] = 0.5 * poses[:, :3, 3] + 0.005 * np.random.default_rng(0).standard_normal((n, 3))
+    keep = n if type(extractor).__name__ == "ORB" else int(0.3 * n)
+    return FakeEstimate(gt.timestamps[:keep], poses[:keep], n, np.full(n, 0.01))
+
+
+def test_run_writes_tables_plots_and_sweep(tmp_path):
+    cfg = compose("evaluate", ["task=slam", f"out_dir={tmp_path}", "extractors=[orb,sift,uwnet]",
+                               "dataset.sequences=[clear]", f"dataset.reader.cache_dir={tmp_path / 'cache'}",
+                               "dataset.reader.num_frames=10", "+dataset.reader.width=160",
+                               "+dataset.reader.height=120", "+dataset.reader.focal=112.5",
+                               "+dataset.reader.texture_res=512", "+dataset.reader.height_res=300",
+                               "+dataset.reader.progress=false"])
+    from ruslam.eval.slam_report import run
+
+    out = run(cfg, slam_run=fake_slam)
+    by_method = {r["method"]: r for r in out["results"]}
+    assert by_method["orb"]["ok"] and by_method["orb"]["ape"] == pytest.approx(0.01, abs=0.006)
+    assert by_method["orb"]["fps"] == pytest.approx(100.0)
+    assert not by_method["sift"]["ok"] and "tracked 30%" in by_method["sift"]["reason"]
+    assert "uwnet" in out["skipped"]
+    for name in ["table.md", "table.csv", "runs.md", "runs.csv", "results.json", "plots/clear.png", "sweep.png",
+                 "trajectories/clear/orb.txt"]:
+        assert (tmp_path / name).is_file(), name
+    assert "| clear |" in (tmp_path / "table.md").read_text() and "×" in (tmp_path / "table.md").read_text()
+
+
+def test_missing_dataset_names_what_to_download(tmp_path):
+    cfg = compose("evaluate", ["task=slam", "dataset=euroc", f"out_dir={tmp_path}", f"dataset.root={tmp_path}"])
+    from ruslam.eval.slam_report import run
+
+    with pytest.raises(FileNotFoundError, match=r"EuRoC.*MH_01_easy.*asl.ethz.ch"):
+        run(cfg, slam_run=fake_slam)
