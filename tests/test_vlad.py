@@ -1,8 +1,12 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from ruslam.models.teachers.vlad import VLAD, fit_codebook, save_codebook, vlad_aggregate
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def reference_vlad(dense: np.ndarray, codebook: np.ndarray, power=0.5) -> np.ndarray:
@@ -59,3 +63,22 @@ def test_codebook_files_are_validated(tmp_path):
         VLAD(num_clusters=4, dim=8, codebook=str(tmp_path / "junk.npy"))
     with pytest.raises(RuntimeError, match="codebook is not fitted"):
         VLAD(num_clusters=4, dim=8)(None, {"dense_descriptors": torch.rand(1, 8, 2, 2)})
+
+
+def test_teacher_configs_build_the_three_cache_targets(tmp_path):
+    from hydra.utils import get_class, instantiate
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.load(ROOT / "conf/teacher/xfeat_vlad.yaml")
+    codebook = np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32)
+    save_codebook(codebook, tmp_path / "cb.npy")
+    conf.global_head.codebook = str(tmp_path / "cb.npy")
+    teacher = instantiate(conf)
+    out = teacher(torch.rand(1, 3, 64, 96))
+    assert out["keypoint_logits"].shape == (1, 65, 8, 12) and out["dense_descriptors"].shape == (1, 64, 8, 12)
+    assert out["global_descriptor"].shape == (1, 4096)
+    torch.testing.assert_close(out["global_descriptor"].norm(dim=1), torch.ones(1))
+    paper = OmegaConf.load(ROOT / "conf/teacher/superpoint_netvlad.yaml")
+    assert OmegaConf.is_missing(paper.global_head, "weights")  # user-supplied NetVLAD weights are mandatory
+    for target in [paper._target_, paper.local._target_, paper.global_head._target_]:
+        assert get_class(target)
