@@ -91,3 +91,22 @@ def test_bad_images(weights, image, message):
     ext = UWNetExtractor.from_file(weights[0])
     with pytest.raises(ValueError, match=message):
         ext.extract(image)
+
+
+def test_onnx_export_matches_pytorch_under_onnxruntime(tmp_path, weights):
+    ort = pytest.importorskip("onnxruntime")
+    from ruslam.models.export import ONNX_OUTPUTS, export_onnx
+
+    net = load_uwnet(weights[0])
+    with torch.no_grad():  # learned (non-zero) offsets so the DCN sampling path is really exercised
+        for m in net.modules():
+            if hasattr(m, "offset") and isinstance(m.offset, torch.nn.Conv2d):
+                m.offset.weight.normal_(0, 0.3)
+    path = export_onnx(net, tmp_path / "uwnet.onnx", height=64, width=96)
+    x = torch.rand(2, 3, 64, 96)
+    with torch.no_grad():
+        ref = net(x)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    outs = session.run(list(ONNX_OUTPUTS), {"image": x.numpy()})
+    for name, value in zip(ONNX_OUTPUTS, outs, strict=True):
+        np.testing.assert_allclose(value, ref[name].numpy(), atol=1e-4, rtol=1e-3)

@@ -108,11 +108,11 @@ ONNX_OUTPUTS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
 
 
 def export_onnx(net: UWNet, path: str | Path, height: int = 480, width: int = 640, opset: int = 17) -> Path:
-    """ONNX graph of the inference path (the DCNs use the grid_sample fast path), dynamic batch size."""
+    """ONNX graph of the inference path (DCNs via the grid_sample fast path) for a fixed HxW, dynamic batch."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    wrapper = _TupleOutputs(net.eval())
+    wrapper = _TupleOutputs(net).eval()  # export restores the wrapper's mode recursively: keep it eval
     dummy = torch.rand(1, 3, height, width)
     with torch.no_grad():
         torch.onnx.export(wrapper, (dummy,), str(tmp), input_names=["image"], output_names=list(ONNX_OUTPUTS),

@@ -1,0 +1,118 @@
+"""Extraction latency at 480x640 on 2 threads: UWNet vs its backbone, SuperPoint, XFeat, ORB; DCN fast path.
+
+    nice .venv/bin/python bench/extractor.py [--reps 15] [--threads 2] [--weights PATH]
+
+All methods run round-robin on the same image (so machine load hits them alike) and the median is reported with
+ratios against the MobileNetV2 backbone (features[:18], what UWNet builds on) and against SuperPoint, measured in
+this same run. Issue 4 targets: UWNet <= 1.3x its backbone and <= 0.25x SuperPoint. Then the deformable
+convolution itself: torchvision `deform_conv2d` vs `deform_conv2d_fast`, 128->128 channels at 60x80.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torchvision.ops import deform_conv2d
+
+from ruslam import load_extractor
+from ruslam.models.deform_conv import deform_conv2d_fast
+from ruslam.models.export import export_weights
+from ruslam.models.teachers.superpoint import SuperPoint, SuperPointNet
+from ruslam.models.uwnet import UWNet
+from ruslam.models.uwnet_extractor import SHIPPED_WEIGHTS, UWNetExtractor
+
+H, W = 480, 640
+
+
+def test_image() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    img = cv2.resize(rng.random((H // 16, W // 16, 3)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
+    for _ in range(300):
+        x, y, s = rng.integers(0, W - 30), rng.integers(0, H - 30), rng.integers(4, 30)
+        img[y:y + s, x:x + s] = rng.random(3)
+    return (np.clip(img, 0, 1) * 255).astype(np.uint8)
+
+
+def round_robin(fns: dict, reps: int) -> dict[str, float]:
+    for fn in fns.values():  # warm-up
+        fn()
+    times = {k: [] for k in fns}
+    for _ in range(reps):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[k].append(time.perf_counter() - t0)
+    return {k: 1000 * statistics.median(v) for k, v in times.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--reps", type=int, default=15)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--weights", default=None, help="UWNet weights (default: shipped file, else random init)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    image = test_image()
+
+    weights = args.weights or (SHIPPED_WEIGHTS if SHIPPED_WEIGHTS.is_file() else None)
+    tmp = tempfile.TemporaryDirectory()
+    if weights is None:
+        weights = Path(tmp.name) / "uwnet_random.pt"
+        export_weights(UWNet(), weights)
+    uwnet = UWNetExtractor.from_file(weights)
+    uwnet_ref = UWNetExtractor.from_file(weights)
+    for m in uwnet_ref.net.modules():
+        if hasattr(m, "fast"):
+            m.fast = False
+    net = uwnet.net
+    x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+    superpoint = SuperPoint(net=SuperPointNet())  # the architecture with random weights: same cost
+    xfeat, orb = load_extractor("xfeat"), load_extractor("orb")
+
+    def backbone():
+        with torch.inference_mode():
+            net.deep(net.shared((x - net.mean) / net.std))
+
+    fns = {
+        "MobileNetV2 backbone (features[:18])": backbone,
+        "UWNet extract": lambda: uwnet.extract(image),
+        "UWNet extract, torchvision DCN": lambda: uwnet_ref.extract(image),
+        "SuperPoint architecture extract": lambda: superpoint.extract(image),
+        "XFeat extract (2k)": lambda: xfeat.extract(image),
+        "ORB-2000 detect+compute": lambda: orb.extract(image),
+    }
+    ms = round_robin(fns, args.reps)
+    base, sp = ms["MobileNetV2 backbone (features[:18])"], ms["SuperPoint architecture extract"]
+    print(f"# bench/extractor.py  {H}x{W}, {args.threads} threads, median of {args.reps}, weights {weights}")
+    print("| method | median ms | x backbone | x SuperPoint |\n|---|---:|---:|---:|")
+    for k, v in ms.items():
+        print(f"| {k} | {v:.1f} | {v / base:.2f} | {v / sp:.2f} |")
+
+    g = torch.Generator().manual_seed(0)
+    inp = torch.randn(1, 128, 60, 80, generator=g)
+    wgt = torch.randn(128, 128, 3, 3, generator=g) * 0.03
+    off = torch.randn(1, 18, 60, 80, generator=g)
+    with torch.inference_mode():
+        dcn = round_robin({
+            "torchvision deform_conv2d": lambda: deform_conv2d(inp, off, wgt, padding=(1, 1)),
+            "deform_conv2d_fast": lambda: deform_conv2d_fast(inp, off, wgt, padding=1),
+            "plain conv2d": lambda: torch.nn.functional.conv2d(inp, wgt, padding=1),
+        }, args.reps)
+    tv = dcn["torchvision deform_conv2d"]
+    print("\n| DCN 128->128 at 60x80 | median ms | speed-up vs torchvision |\n|---|---:|---:|")
+    for k, v in dcn.items():
+        print(f"| {k} | {v:.1f} | {tv / v:.1f}x |")
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
