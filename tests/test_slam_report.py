@@ -81,18 +81,22 @@ def fake_slam(sequence, extractor, cfg):
     return FakeEstimate(gt.timestamps[:keep], poses[:keep], n, np.full(n, 0.01))
 
 
-def test_run_writes_tables_plots_and_sweep(tmp_path):
-    cfg = compose("evaluate", ["task=slam", f"out_dir={tmp_path}", "extractors=[orb,sift,uwnet]",
+def _tiny_cfg(tmp_path, extractors):
+    return compose("evaluate", ["task=slam", f"out_dir={tmp_path}", f"extractors={extractors}",
                                "dataset.sequences=[clear]", f"dataset.reader.cache_dir={tmp_path / 'cache'}",
                                "dataset.reader.num_frames=10", "+dataset.reader.width=160",
                                "+dataset.reader.height=120", "+dataset.reader.focal=112.5",
                                "+dataset.reader.texture_res=512", "+dataset.reader.height_res=300",
                                "+dataset.reader.progress=false"])
+
+
+def test_run_writes_tables_plots_and_sweep(tmp_path):
+    cfg = _tiny_cfg(tmp_path, "[orb,sift,uwnet]")
     from ruslam.eval.slam_report import run
 
     out = run(cfg, slam_run=fake_slam)
     by_method = {r["method"]: r for r in out["results"]}
-    assert by_method["orb"]["ok"] and by_method["orb"]["ape"] == pytest.approx(0.01, abs=0.006)
+    assert by_method["orb"]["ok"] and 0 < by_method["orb"]["ape"] < 0.03  # Sim3 undid the 0.5 scale
     assert by_method["orb"]["fps"] == pytest.approx(100.0)
     assert not by_method["sift"]["ok"] and "tracked 30%" in by_method["sift"]["reason"]
     assert "uwnet" in out["skipped"]
@@ -100,6 +104,16 @@ def test_run_writes_tables_plots_and_sweep(tmp_path):
                  "trajectories/clear/orb.txt"]:
         assert (tmp_path / name).is_file(), name
     assert "| clear |" in (tmp_path / "table.md").read_text() and "×" in (tmp_path / "table.md").read_text()
+
+
+def test_a_crashing_run_is_a_failed_cell(tmp_path):
+    from ruslam.eval.slam_report import run
+
+    def crash(sequence, extractor, cfg):
+        raise RuntimeError("boom")
+
+    out = run(_tiny_cfg(tmp_path, "[orb]"), slam_run=crash)
+    assert out["results"][0]["reason"] == "crashed: RuntimeError: boom" and (tmp_path / "table.md").is_file()
 
 
 def test_missing_dataset_names_what_to_download(tmp_path):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 import os
 from dataclasses import asdict, dataclass
@@ -27,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam.readers import Trajectory, write_tum_trajectory
 
+log = logging.getLogger(__name__)
 FAIL = "×"
 METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked"}
 
@@ -255,7 +257,12 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     for name, seq in opened.items():
         seq.name = name
         for method, extractor in extractors.items():
-            estimate = slam_run(seq, extractor, cfg.slam)
+            try:
+                estimate = slam_run(seq, extractor, cfg.slam)
+            except Exception as exc:  # noqa: BLE001 (one crashed run is a failed cell, not a lost evaluation)
+                log.exception("SLAM crashed on %s with %s", name, method)
+                results.append(RunResult(name, method, False, f"crashed: {type(exc).__name__}: {exc}"))
+                continue
             if len(estimate.timestamps):
                 write_tum_trajectory(_mkdir(out_dir / "trajectories" / name) / f"{method}.txt",
                                      Trajectory(estimate.timestamps, estimate.poses))
