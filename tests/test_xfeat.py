@@ -62,7 +62,7 @@ def test_dense_outputs_equal_package_on_real_images(teacher, package_xfeat, shar
 
 def test_sparse_keypoints_are_the_packages_and_descriptors_agree(package_xfeat):
     rgb = textured_image(seed=1)
-    ours = load_extractor("xfeat", max_keypoints=0, border=0).extract(rgb)
+    ours = load_extractor("xfeat", max_keypoints=0, border=0, vlad_codebook=None).extract(rgb)
     with torch.inference_mode():
         theirs = package_xfeat.detectAndCompute(torch.from_numpy(rgb).permute(2, 0, 1)[None], top_k=100000)[0]
     # the package's nearest-neighbour score lookup falls off the map on the last row/column (score 0, dropped)
@@ -87,6 +87,9 @@ def test_extractor_contract_on_odd_size_and_translation():
     assert 50 < n <= 300 and out["scores"].shape == (n,) and out["descriptors"].shape == (n, 64)
     assert (kp >= 4).all() and (kp[:, 0] < 250 - 4).all() and (kp[:, 1] < 200 - 4).all()
     np.testing.assert_allclose(np.linalg.norm(out["descriptors"], axis=1), 1, atol=1e-5)
+    assert out["global_descriptor"].shape == (4096,)  # VLAD with the packaged codebook
+    np.testing.assert_allclose(np.linalg.norm(out["global_descriptor"]), 1, atol=1e-5)
+    assert "global_descriptor" not in load_extractor("xfeat", vlad_codebook=None).extract(rgb)
     assert np.all(np.diff(out["scores"]) <= 0)
     # a crop at a 32-pixel offset sees the same interior: keypoints shifted by exactly the offset
     crop = load_extractor("xfeat", max_keypoints=0).extract(rgb[32:, 32:])["keypoints"] + 32

