@@ -276,7 +276,9 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
             plot_top_view(out_dir / "plots" / f"{name}.png", f"{dataset.label}: {name}", ref.positions,
                           {labels.get(m, m): c["aligned"] for m, c in curves.get(name, {}).items() if c})
     metrics = list(dataset.metrics)
-    title = f"{dataset.label}: RMSE of {' and '.join(METRICS[k] for k in metrics)} (m)"
+    errors = [METRICS[k] for k in metrics if k != "tracked"]
+    title = f"{dataset.label}: RMSE of {' and '.join(errors)} (m)" + (", tracked fraction" if "tracked" in metrics
+                                                                       else "")
     md, table_csv = results_table(results, list(sequences), methods, metrics, labels, title,
                                   row_label=dataset.get("row_label", "Sequence"))
     if skipped:
