@@ -1,0 +1,313 @@
+"""Embedded in-air RGB-D source: ray-cast textured rooms with exact metric depth (no download needed).
+
+Each scene is a room (an axis-aligned box seen from inside: floor, ceiling, four walls) holding boxes (yawed about
+the vertical) and spheres, every surface texture-mapped in its own coordinates (so texture stays fixed on the
+surface when the camera moves) with a bank of corner- and blob-rich textures (`procedural_textures`).  Shading is
+two-sided Lambertian under one directional light plus ambient.  Rays of all pixels are intersected with all
+primitives at once in numpy; rendering 240x320 takes a few tens of milliseconds.
+
+Conventions (documented once, used by `render`, `Scene` and `ProceduralRGBD`):
+
+- World frame: z up, the floor is z = 0.  Camera frame: OpenCV (x right, y down, z forward).
+  ``T_world_cam`` (4x4) maps camera to world coordinates.
+- Intrinsics ``K``: pinhole, square pixels, principal point at the image centre ((w-1)/2, (h-1)/2), i.e. pixel
+  centres at integer coordinates; ``fx = (w/2) / tan(hfov/2)``.
+- ``depth`` is the **z-depth** (distance along the optical axis, as Kinect/NYU/TUM store it), not the ray length.
+  Rays are ``K^-1 [u, v, 1]``, whose camera z is 1, so the ray parameter of the hit is the z-depth exactly.
+- Scenes are deterministic per (seed, index): the generator is ``np.random.default_rng([seed, index])``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ruslam.data.procedural_textures import TEXTURE_SIZE, sample_textures, texture_bank
+
+_EPS = 1e-4
+# Texture axes (u, v) of a box face by its normal axis: x-faces use (y, -z), y-faces (x, -z), z-faces (x, y).
+_U_AXIS = np.array([1, 0, 0])
+_V_AXIS = np.array([2, 2, 1])
+_V_SIGN = np.array([-1.0, -1.0, 1.0])
+
+
+@dataclass
+class Scene:
+    """Plain arrays describing one scene; surface index k runs over boxes first, then spheres.
+
+    The room is box 0 with ``box_inside[0] = True`` (seen from inside).  Per surface: ``texel_density``
+    (level-0 texels per metre), ``uv_angle`` (rad), ``uv_offset`` (texels) and ``tint`` (RGB gain).
+    """
+
+    box_center: np.ndarray  # [B, 3]
+    box_half: np.ndarray  # [B, 3] half extents in the box frame
+    box_yaw: np.ndarray  # [B] rotation about world z
+    box_inside: np.ndarray  # [B] bool
+    box_texture: np.ndarray  # [B, 6] texture index per face (axis * 2 + positive side)
+    sphere_center: np.ndarray  # [S, 3]
+    sphere_radius: np.ndarray  # [S]
+    sphere_texture: np.ndarray  # [S]
+    texel_density: np.ndarray  # [B + S]
+    uv_angle: np.ndarray  # [B + S]
+    uv_offset: np.ndarray  # [B + S, 2]
+    tint: np.ndarray  # [B + S, 3]
+    light_dir: np.ndarray  # [3] unit vector towards the light
+    ambient: float
+    T_world_cam: np.ndarray  # [4, 4] the scene's reference camera
+
+    def render(self, T_world_cam: np.ndarray, K: np.ndarray, height: int, width: int,
+               textures: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        return render(self, T_world_cam, K, height, width, textures)
+
+
+def intrinsics(height: int, width: int, hfov_deg: float = 60.0) -> np.ndarray:
+    f = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def look_pose(position, yaw: float, pitch: float, roll: float = 0.0) -> np.ndarray:
+    """T_world_cam of a camera at ``position`` heading ``yaw`` (rad, about z), ``pitch`` (rad, < 0 looks down)."""
+    forward = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    c, s = np.cos(roll), np.sin(roll)
+    right, down = c * right + s * down, -s * right + c * down
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, down, forward], axis=1)
+    T[:3, 3] = position
+    return T
+
+
+def jitter_pose(T_world_cam: np.ndarray, rot_deg: float, trans_m: float, rng: np.random.Generator) -> np.ndarray:
+    """Perturb a pose by a rotation of exactly ``rot_deg`` about a random axis and a translation of exactly
+    ``trans_m`` in a random direction (both applied in the camera frame)."""
+    import cv2  # noqa: PLC0415
+
+    axis = rng.normal(size=3)
+    direction = rng.normal(size=3)
+    delta = np.eye(4)
+    delta[:3, :3] = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(rot_deg))[0]
+    delta[:3, 3] = direction / np.linalg.norm(direction) * trans_m
+    return T_world_cam @ delta
+
+
+def _yaw_matrices(yaw: np.ndarray) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.zeros((len(yaw), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def _screen_rect(c: np.ndarray, r: float, K: np.ndarray, height: int, width: int) -> tuple[slice, slice]:
+    """Conservative pixel rectangle covering a sphere of radius r centred at c (camera frame) in front of it."""
+    if c[2] - r <= 1e-3:
+        return slice(0, height), slice(0, width)
+    near, far = c[2] - r, c[2] + r
+    span = []
+    for axis, size in ((1, height), (0, width)):
+        lo = (c[axis] - r) / (near if c[axis] - r < 0 else far)
+        hi = (c[axis] + r) / (near if c[axis] + r > 0 else far)
+        f, p = K[axis, axis], K[axis, 2]
+        span.append(slice(int(np.clip(np.floor(f * lo + p), 0, size)), int(np.clip(np.ceil(f * hi + p) + 1, 0, size))))
+    return span[0], span[1]
+
+
+def render(scene: Scene, T_world_cam: np.ndarray, K: np.ndarray, height: int, width: int,
+           textures: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast ``scene`` -> (image float32 HxWx3 in [0, 1], z-depth float32 HxW metres; NaN where no surface).
+
+    ``textures`` are the mip levels of a texture bank (`procedural_textures.texture_bank`), default seed 0.
+    """
+    K = np.asarray(K, np.float64)
+    R, o = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    u, v = np.meshgrid(np.arange(width), np.arange(height))
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)])
+    d = np.einsum("ij,jhw->ihw", R, d_cam).astype(np.float32)  # world ray directions whose camera-z is 1
+
+    n_box, n_sph = len(scene.box_center), len(scene.sphere_center)
+    Rb = _yaw_matrices(scene.box_yaw)
+    radius = np.concatenate([np.linalg.norm(scene.box_half, axis=1), scene.sphere_radius])
+    centre = np.concatenate([scene.box_center, scene.sphere_center])
+    t_all = np.full((n_box + n_sph, height, width), np.inf, np.float32)
+    for k in range(n_box + n_sph):
+        rows, cols = _screen_rect(R.T @ (centre[k] - o), radius[k], K, height, width)
+        if rows.start >= rows.stop or cols.start >= cols.stop:
+            continue
+        dk = d[:, rows, cols]
+        if k < n_box:  # slab test in the box's own frame
+            d_loc = np.einsum("ji,jhw->ihw", Rb[k].astype(np.float32), dk)
+            o_loc = (Rb[k].T @ (o - centre[k])).astype(np.float32)[:, None, None]
+            half = scene.box_half[k].astype(np.float32)[:, None, None]
+            inv = 1.0 / np.where(np.abs(d_loc) < 1e-12, np.float32(1e-12), d_loc)
+            t1, t2 = (-half - o_loc) * inv, (half - o_loc) * inv
+            t_near, t_far = np.minimum(t1, t2).max(0), np.maximum(t1, t2).min(0)
+            tk = np.where(t_near > _EPS, t_near, np.where(t_far > _EPS, t_far, np.inf))
+            tk[t_near > t_far] = np.inf
+        else:  # nearest root of |o + t d - c|^2 = r^2
+            oc = (o - centre[k]).astype(np.float32)
+            a = (dk * dk).sum(0)
+            b = np.einsum("i,ihw->hw", oc, dk)
+            disc = b * b - a * np.float32(oc @ oc - radius[k] ** 2)
+            tk = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+            tk[(disc < 0) | (tk <= _EPS)] = np.inf
+        t_all[k, rows, cols] = tk
+    t_all = t_all.reshape(n_box + n_sph, -1)
+    d = d.reshape(3, -1)
+    surface = np.argmin(t_all, axis=0)
+    t = t_all[surface, np.arange(surface.size)]
+    hit = np.isfinite(t)
+
+    # Surface frame of every hit pixel, boxes and spheres each in one vectorised pass.
+    idx = np.flatnonzero(hit)
+    k = surface[idx]
+    rel = (o[:, None] + t[idx] * d[:, idx] - centre[k].T).astype(np.float32)
+    normal, tex = np.empty((3, idx.size), np.float32), np.empty(idx.size, np.int64)
+    su, sv = np.empty(idx.size, np.float32), np.empty(idx.size, np.float32)  # surface coordinates, metres
+    b = np.flatnonzero(k < n_box)
+    kb = k[b]
+    c, s = np.cos(scene.box_yaw[kb]).astype(np.float32), np.sin(scene.box_yaw[kb]).astype(np.float32)
+    p = np.stack([c * rel[0, b] + s * rel[1, b], -s * rel[0, b] + c * rel[1, b], rel[2, b]])  # box frame
+    axis = np.argmax(np.abs(p) / scene.box_half[kb].T, axis=0)
+    ar = np.arange(b.size)
+    positive = p[axis, ar] > 0
+    sign = np.where(positive, 1.0, -1.0).astype(np.float32)
+    normal[0, b] = np.where(axis == 0, c, np.where(axis == 1, -s, 0.0)) * sign  # yaw applied to the face axis
+    normal[1, b] = np.where(axis == 0, s, np.where(axis == 1, c, 0.0)) * sign
+    normal[2, b] = (axis == 2) * sign
+    tex[b] = scene.box_texture[kb, axis * 2 + positive]
+    su[b] = p[_U_AXIS[axis], ar]
+    sv[b] = p[_V_AXIS[axis], ar] * _V_SIGN[axis]
+    q = np.flatnonzero(k >= n_box)
+    r = radius[k[q]].astype(np.float32)
+    p = rel[:, q] / r
+    normal[:, q] = p
+    tex[q] = scene.sphere_texture[k[q] - n_box]
+    su[q] = r * np.arctan2(p[1], p[0])
+    sv[q] = -r * np.arcsin(np.clip(p[2], -1.0, 1.0))
+
+    # Texture coordinates in level-0 texels; footprint = texels covered by one pixel (picks the mip level).
+    ca, sa = np.cos(scene.uv_angle[k]), np.sin(scene.uv_angle[k])
+    rho = scene.texel_density[k]
+    x = rho * (ca * su - sa * sv) + scene.uv_offset[k, 0]
+    y = rho * (sa * su + ca * sv) + scene.uv_offset[k, 1]
+    ray = d[:, idx] / np.linalg.norm(d[:, idx], axis=0)
+    cos_view = (normal * ray).sum(0)
+    n = normal * -np.sign(cos_view + 1e-12)  # two-sided: the normal faces the camera
+    footprint = rho * t[idx] / K[0, 0] / np.maximum(np.abs(cos_view), 0.25)
+    albedo = sample_textures(textures or texture_bank(0), tex[idx], x, y, footprint)
+    shade = scene.ambient + (1.0 - scene.ambient) * np.maximum(scene.light_dir.astype(np.float32) @ n, 0.0)
+
+    image = np.zeros((t.size, 3), np.float32)
+    image[idx] = np.clip(albedo * scene.tint[k] * shade[:, None], 0.0, 1.0)
+    depth = np.where(hit, t, np.nan).astype(np.float32)
+    return image.reshape(height, width, 3), depth.reshape(height, width)
+
+
+def random_scene(rng: np.random.Generator, hfov_deg: float = 60.0, num_textures: int = 48) -> Scene:
+    """A room of 5-9 m by 5-9 m with 3-8 boxes and 1-4 spheres, most placed inside the reference camera's view
+    at 1.5-7 m, and the camera at least 0.4 m from every object (so jittered views stay outside them)."""
+    hx, hy, height = rng.uniform(2.5, 4.5), rng.uniform(2.5, 4.5), rng.uniform(2.6, 4.0)
+    cam = np.array([rng.uniform(-hx + 0.7, hx - 0.7), rng.uniform(-hy + 0.7, hy - 0.7), rng.uniform(0.8, 2.0)])
+    yaw = np.arctan2(-cam[1], -cam[0]) + rng.uniform(-0.9, 0.9)  # roughly towards the room centre
+    pose = look_pose(cam, yaw, np.radians(rng.uniform(-40, -8)), np.radians(rng.uniform(-8, 8)))
+
+    def place(radius: float, z: float) -> np.ndarray | None:
+        for _ in range(20):
+            if rng.random() < 0.8:  # in front of the camera, within the horizontal field of view
+                bearing = yaw + rng.uniform(-0.6, 0.6) * np.radians(hfov_deg)
+                xy = cam[:2] + rng.uniform(1.5, 7.0) * np.array([np.cos(bearing), np.sin(bearing)])
+            else:
+                xy = rng.uniform([-hx, -hy], [hx, hy])
+            centre = np.array([xy[0], xy[1], z])
+            inside = abs(xy[0]) < hx - radius and abs(xy[1]) < hy - radius
+            if inside and np.linalg.norm(centre - cam) > radius + 0.4:
+                return centre
+        return None
+
+    centers, halves, yaws = [np.array([0.0, 0.0, height / 2])], [np.array([hx, hy, height / 2])], [0.0]
+    for _ in range(rng.integers(3, 9)):
+        half = rng.uniform([0.15, 0.15, 0.15], [0.8, 0.8, 1.0])
+        z = half[2] if rng.random() < 0.75 else rng.uniform(half[2], height - half[2])
+        c = place(float(np.linalg.norm(half)), z)
+        if c is not None:
+            centers.append(c), halves.append(half), yaws.append(rng.uniform(0, np.pi / 2))
+    sph_c, sph_r = [], []
+    for _ in range(rng.integers(1, 5)):
+        r = rng.uniform(0.2, 0.7)
+        c = place(r, r if rng.random() < 0.6 else rng.uniform(r, height - r))
+        if c is not None:
+            sph_c.append(c), sph_r.append(r)
+    n_box, n_sph = len(centers), len(sph_c)
+    box_tex = rng.integers(0, num_textures, (n_box, 6))
+    same = rng.random(n_box) < 0.5
+    box_tex[same] = box_tex[same, :1]
+    size_m = np.concatenate([rng.uniform(1.0, 2.5, 1), rng.uniform(0.4, 1.5, n_box - 1 + n_sph)])
+    light = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.8, 2.0)])
+    return Scene(
+        box_center=np.array(centers), box_half=np.array(halves), box_yaw=np.array(yaws),
+        box_inside=np.arange(n_box) == 0, box_texture=box_tex,
+        sphere_center=np.array(sph_c).reshape(n_sph, 3), sphere_radius=np.array(sph_r),
+        sphere_texture=rng.integers(0, num_textures, n_sph),
+        texel_density=TEXTURE_SIZE / size_m, uv_angle=rng.uniform(0, 2 * np.pi, n_box + n_sph),
+        uv_offset=rng.uniform(0, TEXTURE_SIZE, (n_box + n_sph, 2)),
+        tint=rng.uniform(0.75, 1.15, (n_box + n_sph, 3)),
+        light_dir=light / np.linalg.norm(light), ambient=float(rng.uniform(0.45, 0.65)), T_world_cam=pose,
+    )
+
+
+class ProceduralRGBD:
+    """Map-style in-air RGB-D dataset of ``num_images`` procedural scenes (the embedded default ``data=``).
+
+    ``ds[i]`` -> ``{"id", "image" float32 HxWx3 [0,1], "depth" float32 HxW z-depth metres}``; scene ``i`` is the
+    same for every resolution.  For "same scene, small camera motion" views use
+    ``render_view(i, camera_jitter=(rot_deg, trans_m), jitter_seed=j)``; ``scene(i)`` and ``K`` give the raw
+    pieces (``scene(i).render(T_world_cam, ds.K, h, w, ds.textures)``) for custom trajectories.
+    """
+
+    def __init__(self, num_images: int, height: int = 240, width: int = 320, seed: int = 0,
+                 hfov_deg: float = 60.0, num_textures: int = 48):
+        if num_images < 1 or height < 16 or width < 16:
+            raise ValueError(f"ProceduralRGBD needs num_images >= 1 and an image of at least 16x16 pixels, got "
+                             f"num_images={num_images}, height={height}, width={width}.")
+        if not 10.0 <= hfov_deg <= 150.0:
+            raise ValueError(f"hfov_deg must lie in [10, 150] degrees, got {hfov_deg}.")
+        self.num_images, self.height, self.width, self.seed = int(num_images), int(height), int(width), int(seed)
+        self.hfov_deg, self.num_textures = float(hfov_deg), int(num_textures)
+        self.K = intrinsics(self.height, self.width, self.hfov_deg)
+
+    @property
+    def textures(self) -> tuple[np.ndarray, ...]:
+        return texture_bank(self.seed, self.num_textures)
+
+    def __len__(self) -> int:
+        return self.num_images
+
+    def _check(self, index: int) -> int:
+        if not -self.num_images <= index < self.num_images:
+            raise IndexError(f"Procedural image index {index} is out of range for {self.num_images} images.")
+        return index % self.num_images
+
+    def scene(self, index: int) -> Scene:
+        return random_scene(np.random.default_rng([self.seed, self._check(index)]), self.hfov_deg,
+                            self.num_textures)
+
+    def image_id(self, index: int) -> str:
+        return f"procedural-s{self.seed}-{self._check(index):06d}"
+
+    def __getitem__(self, index: int) -> dict:
+        scene = self.scene(index)
+        image, depth = render(scene, scene.T_world_cam, self.K, self.height, self.width, self.textures)
+        return {"id": self.image_id(index), "image": image, "depth": depth}
+
+    def render_view(self, index: int, camera_jitter: tuple[float, float] = (0.0, 0.0), jitter_seed: int = 0) -> dict:
+        """The scene of ``index`` seen from its camera rotated by ``camera_jitter[0]`` degrees about a random axis
+        and moved ``camera_jitter[1]`` metres in a random direction (random draws seeded by (seed, index,
+        jitter_seed)).  Adds ``K`` and ``T_world_cam`` to the sample."""
+        scene = self.scene(index)
+        rng = np.random.default_rng([self.seed, self._check(index), int(jitter_seed), 1])
+        pose = jitter_pose(scene.T_world_cam, float(camera_jitter[0]), float(camera_jitter[1]), rng)
+        image, depth = render(scene, pose, self.K, self.height, self.width, self.textures)
+        return {"id": f"{self.image_id(index)}-j{jitter_seed}", "image": image, "depth": depth,
+                "K": self.K.copy(), "T_world_cam": pose}
