@@ -216,8 +216,9 @@ class WaterLevel:
     """One turbidity level of eq. 4: a Jerlov water type (None = the clean in-air render) and its other terms."""
 
     water: str | None = None
-    light: float = 1.0  # L: illumination scale, < 1 for low light
-    background: tuple[float, float, float] = (0.08, 0.38, 0.45)  # A (RGB), a blue-green veil
+    light: float = 1.0  # L: extra illumination factor, < 1 for low light
+    background: tuple[float, float, float] | None = None  # A (RGB); None: ambient daylight colour at ambient_depth_m
+    ambient_depth_m: float = 5.0
     noise_std: float = 0.01
     blur_angle_deg: float = 20.0
     blur_length: float = 4.0
@@ -225,15 +226,24 @@ class WaterLevel:
     def key(self) -> str:
         return hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:8]
 
+    def background_light(self) -> np.ndarray:
+        """A = 0.7 eta, eta the colour daylight keeps after ``ambient_depth_m`` of this water (synthesis defaults)."""
+        if self.background is not None:
+            return np.asarray(self.background, np.float32)
+        from ruslam.data.background_light import DEFAULT_L, ambient_rgb  # noqa: PLC0415
+
+        rgb = ambient_rgb(self.water, self.ambient_depth_m)
+        return (DEFAULT_L * rgb / rgb.max()).astype(np.float32)
+
 
 #: The default sweep: clear water, Jerlov open-ocean I and III, coastal 5C and 9C, and a dim coastal scene.
 LEVELS = {
     "clear": WaterLevel(),
     "jerlov_I": WaterLevel("I"),
     "jerlov_III": WaterLevel("III"),
-    "jerlov_5C": WaterLevel("5C", background=(0.10, 0.42, 0.36)),
-    "jerlov_9C": WaterLevel("9C", background=(0.14, 0.40, 0.28)),
-    "low_light": WaterLevel("III", light=0.3),
+    "jerlov_5C": WaterLevel("5C"),
+    "jerlov_9C": WaterLevel("9C"),
+    "low_light": WaterLevel("5C", light=0.3),
 }
 
 
@@ -331,7 +341,7 @@ def degrade_level(cfg: SeafloorConfig, clean: Path, level: WaterLevel, out: Path
     try:
         import torch  # noqa: PLC0415
 
-        from ruslam.data.synthesis import degrade  # noqa: PLC0415
+        from ruslam.data.synthesis import degrade, image_generator  # noqa: PLC0415
         from ruslam.data.water import beta_rgb  # noqa: PLC0415
     except ImportError as err:
         raise ImportError(f"Turbid synthetic levels need ruslam.data.synthesis and .water ({err}).") from None
@@ -339,7 +349,7 @@ def degrade_level(cfg: SeafloorConfig, clean: Path, level: WaterLevel, out: Path
     cam_dirs = _write_layout(tmp, cfg, circuit_poses(cfg), level.water or "clear")
     n_cams = len(cam_dirs)
     beta = torch.as_tensor(np.asarray(beta_rgb(level.water), np.float32)).expand(n_cams, 3)
-    A = torch.tensor(level.background, dtype=torch.float32).expand(n_cams, 3)
+    A = torch.from_numpy(level.background_light()).expand(n_cams, 3)
     L = torch.full((n_cams,), float(level.light))
     noise = torch.full((n_cams,), float(level.noise_std))
     frames = list(enumerate(_stamps_ns(cfg)))
@@ -356,7 +366,7 @@ def degrade_level(cfg: SeafloorConfig, clean: Path, level: WaterLevel, out: Path
                 raise FileNotFoundError(f"Clean frame {stamp} of {clean} is missing; delete {clean} to re-render.")
             rgb.append(image[..., ::-1].astype(np.float32) / 255.0)
             depth.append(rng.astype(np.float32) / DEPTH_SCALE)
-        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + i)
+        gen = [image_generator(cfg.seed, n_cams * i + c) for c in range(n_cams)]
         out_rgb = degrade(torch.from_numpy(np.stack(rgb)).permute(0, 3, 1, 2), torch.from_numpy(np.stack(depth)),
                           beta, A, L, noise, level.blur_angle_deg, level.blur_length, generator=gen)
         for c, cam_dir in enumerate(cam_dirs):
