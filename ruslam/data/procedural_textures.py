@@ -96,17 +96,20 @@ def bricks_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.nda
 def cells_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
     """Periodic Voronoi cells with dark borders: polygon junctions are natural corners."""
     n = int(rng.integers(20, 60))
-    seeds = rng.uniform(0, size, (n, 2)).astype(np.float32)
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
-    dx = np.abs(xx[None] - seeds[:, 0, None, None])
-    dy = np.abs(yy[None] - seeds[:, 1, None, None])
-    dist = np.minimum(dx, size - dx) ** 2 + np.minimum(dy, size - dy) ** 2
-    order = np.argpartition(dist, 1, axis=0)[:2]
-    d0 = np.sqrt(np.take_along_axis(dist, order[:1], 0)[0])
-    d1 = np.sqrt(np.take_along_axis(dist, order[1:2], 0)[0])
+    seeds = rng.integers(0, size, (n, 2))
+    canvas = np.ones((3 * size, 3 * size), np.uint8)
+    for dx, dy in _SHIFTS:  # seeds tiled 3x3: the centre tile sees its wrapped neighbours
+        canvas[seeds[:, 1] + (dy + 1) * size, seeds[:, 0] + (dx + 1) * size] = 0
+    _, labels = cv2.distanceTransformWithLabels(canvas, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    seed_of_label = np.zeros(labels.max() + 1, np.int64)
+    for dx, dy in _SHIFTS:
+        seed_of_label[labels[seeds[:, 1] + (dy + 1) * size, seeds[:, 0] + (dx + 1) * size]] = np.arange(n)
+    cell = seed_of_label[labels[size - 1:2 * size + 1, size - 1:2 * size + 1]]
+    border = (cell[1:-1, 1:-1] != cell[1:-1, 2:]) | (cell[1:-1, 1:-1] != cell[2:, 1:-1])
+    border = cv2.dilate(border.astype(np.uint8), np.ones((2, 2), np.uint8)) > 0
     palette = np.array([_colour(rng) for _ in range(n)], np.uint8)
-    img = palette[order[0]]
-    img[(d1 - d0) < 2.5] = (np.array(_colour(rng)) * 0.3).astype(np.uint8)
+    img = palette[cell[1:-1, 1:-1]]
+    img[border] = (np.array(_colour(rng)) * 0.3).astype(np.uint8)
     return img
 
 
