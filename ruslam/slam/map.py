@@ -18,13 +18,19 @@ from ruslam.slam.feature_matching import descriptor_distances
 
 
 def inverse_pose(T: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 rigid transform (or a similarity sR|t)."""
-    A = T[:3, :3]
-    s2 = np.sum(A[:, 0] ** 2)  # s^2 for a similarity, 1 for a rigid transform
-    A_inv = A.T / s2
+    """Exact inverse of a 4x4 rigid transform or similarity [sR | t]."""
+    A_inv = np.linalg.inv(T[:3, :3])
     out = np.eye(4)
     out[:3, :3] = A_inv
     out[:3, 3] = -A_inv @ T[:3, 3]
+    return out
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """Project the rotation of a rigid transform back onto SO(3) (products of many poses drift off it)."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     return out
 
 
@@ -60,7 +66,8 @@ class Frame:
 
     @property
     def center(self) -> np.ndarray:
-        return -self.T_cw[:3, :3].T @ self.T_cw[:3, 3]
+        R, t = self.T_cw[:3, :3], self.T_cw[:3, 3]
+        return -(R.T @ t)
 
     def matched_indices(self) -> np.ndarray:
         return np.array([i for i, p in enumerate(self.points) if p is not None and not p.is_bad], dtype=int)
@@ -77,7 +84,8 @@ class Frame:
         return (uv[:, 0] >= border) & (uv[:, 1] >= border) & (uv[:, 0] < w - border) & (uv[:, 1] < h - border)
 
 
-_ids = itertools.count()
+_keyframe_ids = itertools.count()
+_point_ids = itertools.count()
 
 
 class KeyFrame(Frame):
@@ -90,7 +98,7 @@ class KeyFrame(Frame):
             global_descriptor=frame.global_descriptor, right=frame.right, depth=frame.depth,
             T_cw=frame.T_cw.copy(), points=list(frame.points),
         )
-        self.id = next(_ids)
+        self.id = next(_keyframe_ids)
         self.is_bad = False
         self.parent: KeyFrame | None = None  # spanning tree, for the essential graph and culled keyframes
         self.T_parent: np.ndarray | None = None  # T_cw relative to the parent, kept when culled
@@ -111,7 +119,7 @@ class KeyFrame(Frame):
 
 class MapPoint:
     def __init__(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame):
-        self.id = next(_ids)
+        self.id = next(_point_ids)
         self.position = np.asarray(position, dtype=np.float64)
         self.descriptor = descriptor
         self.reference = reference  # keyframe that created it (for loop correction)
@@ -131,11 +139,14 @@ class MapPoint:
         kf.points[index] = self
 
     def update_normal(self) -> None:
+        """Mean viewing direction over the observing keyframes (for the viewing-angle test of the search)."""
         if not self.observations:
             return
-        dirs = [self.position - kf.center for kf in self.observations]
-        n = np.mean([d / max(np.linalg.norm(d), 1e-12) for d in dirs], axis=0)
-        self.normal = n / max(np.linalg.norm(n), 1e-12)
+        centres = np.array([kf.center for kf in self.observations])
+        d = self.position - centres
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        n = d.sum(0)
+        self.normal = n / max(float(np.sqrt(n @ n)), 1e-12)
 
     def update_descriptor(self, binary: bool) -> None:
         """The observation descriptor with the least median distance to the others (ORB-SLAM's choice)."""

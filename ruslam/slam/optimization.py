@@ -19,7 +19,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from ruslam.slam.geometry import CHI2_2DOF
-from ruslam.slam.map import inverse_pose
+from ruslam.slam.map import inverse_pose, orthonormalize
 
 HUBER_DELTA = float(np.sqrt(CHI2_2DOF))
 
@@ -130,7 +130,7 @@ def optimize_pose(
         inlier = (e2 < thresh) & (z > 0)
         if inlier.sum() < 3:
             break
-    return T, inlier
+    return orthonormalize(T), inlier
 
 
 # --- local bundle adjustment (gtsam) -----------------------------------------------------------------------------
@@ -171,9 +171,9 @@ def bundle_adjustment(
             else:
                 f = gtsam.GenericProjectionFactorCal3_S2(obs_uv[o], noise, X(i), L(j), cal)
             graph.add(f)
-        used = set(obs_point[inlier].tolist())
-        for j in set(range(len(points))) - used:  # a point that lost all observations stays where it is
-            graph.add(gtsam.NonlinearEqualityPoint3(L(j), values.atPoint3(L(j))))
+        counts = np.bincount(obs_point[inlier], minlength=len(points))
+        for j in np.nonzero(counts < 2)[0]:  # a point left with < 2 measurements has no depth: hold it
+            graph.add(gtsam.NonlinearEqualityPoint3(L(int(j)), values.atPoint3(L(int(j)))))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(iters)
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()

@@ -1,0 +1,310 @@
+"""Local mapping (paper 3.1): keyframe insertion, covisibility update, point culling, new points by triangulation
+with neighbours, fusion of duplicates, local bundle adjustment (gtsam, Huber) and redundant-keyframe culling.
+
+`LocalMapper` is synchronous: `insert_keyframe` processes the keyframe at once (then hands it to loop closing).
+`ThreadedLocalMapper` is the thin thread layer: the same `process` run from a queue in a worker thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
+from ruslam.slam.geometry import (
+    CHI2_2DOF,
+    epipolar_distance,
+    fundamental_from_poses,
+    triangulate,
+    triangulation_mask,
+)
+from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform
+from ruslam.slam.optimization import bundle_adjustment
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MappingConfig:
+    max_distance_binary: float = 64.0
+    max_distance_float: float = 1.0
+    ratio: float = 0.8
+    triangulation_neighbours: int = 10
+    epipolar_px: float = 4.0
+    min_parallax_deg: float = 1.0
+    max_distance_ratio: float = 1.8  # of a new point's distances to the two keyframes
+    fuse_neighbours: int = 10
+    fuse_radius: float = 3.0
+    ba_keyframes: int = 7  # optimised keyframes (the new one and its best covisible neighbours)
+    ba_fixed_keyframes: int = 5  # other keyframes seeing local points, held fixed
+    ba_iterations: tuple[int, int] = (4, 6)  # LM iterations before / after dropping outlier observations
+    redundancy: float = 0.9  # cull a keyframe when this share of its points is seen by >= 3 others
+    min_found_ratio: float = 0.25  # cull a new point matched in fewer than this share of frames that could see it
+
+
+def alive_points(kf: KeyFrame) -> list[MapPoint]:
+    return [p for p in kf.points if p is not None and not p.is_bad]
+
+
+class LocalMapper:
+    def __init__(self, map: Map, cfg: MappingConfig, binary: bool, rig=None, loop_closer=None):
+        self.map, self.cfg, self.binary, self.rig, self.loop_closer = map, cfg, binary, rig, loop_closer
+        self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
+        self.recent: list[MapPoint] = []
+        self.processed = 0
+
+    # --- the interface the tracker sees ------------------------------------------------------------------------
+    def insert_keyframe(self, kf: KeyFrame) -> None:
+        self.process(kf)
+
+    def idle(self) -> bool:
+        return True
+
+    def finish(self) -> None:
+        """Wait for queued work (nothing to wait for in synchronous mode)."""
+
+    # --- one keyframe ------------------------------------------------------------------------------------------
+    def process(self, kf: KeyFrame) -> None:
+        with self.map.lock:
+            if kf.is_bad:
+                return
+            self._insert(kf)
+            self._cull_points(kf)
+            self._triangulate(kf)
+            self._fuse(kf)
+            if len(self.map.keyframes) > 2:
+                self._local_bundle_adjustment(kf)
+                self._cull_keyframes(kf)
+            self.processed += 1
+        if self.loop_closer is not None:
+            self.loop_closer.process(kf)
+
+    def _insert(self, kf: KeyFrame) -> None:
+        for i, p in enumerate(kf.points):
+            if p is None or p.is_bad:
+                kf.points[i] = None
+            elif kf not in p.observations:
+                p.add_observation(kf, i)
+                p.update_normal()
+                p.update_descriptor(self.binary)
+            else:  # created by this keyframe (stereo points)
+                self.recent.append(p)
+        self.map.update_connections(kf)
+
+    def _cull_points(self, kf: KeyFrame) -> None:
+        min_obs = 3 if self.rig is not None else 2
+        keep = []
+        for p in self.recent:
+            age = kf.id - p.first_kf_id
+            if p.is_bad:
+                continue
+            if p.found / max(p.visible, 1) < self.cfg.min_found_ratio or (age >= 2 and len(p.observations) < min_obs):
+                self.map.remove_point(p)
+            elif age < 3:
+                keep.append(p)
+        self.recent = keep
+
+    # --- new points --------------------------------------------------------------------------------------------
+    def _triangulate(self, kf: KeyFrame) -> None:
+        c = self.cfg
+        K = kf.K
+        free1 = np.array([p is None for p in kf.points])
+        neighbours = self.map.neighbours(kf, c.triangulation_neighbours)
+        # widest baseline first: a keypoint is triangulated with the most distant neighbour that sees it
+        neighbours.sort(key=lambda n: -np.linalg.norm(n.center - kf.center))
+        for n in neighbours:
+            baseline = np.linalg.norm(n.center - kf.center)
+            if self.rig is not None:
+                if baseline < np.linalg.norm(self.rig[1][:3, 3]):
+                    continue
+            else:
+                seen = alive_points(n)
+                if not seen:
+                    continue
+                depth = np.median(transform(n.T_cw, np.stack([p.position for p in seen]))[:, 2])
+                if baseline / max(depth, 1e-9) < 0.01:
+                    continue
+            i1 = np.nonzero(free1)[0]
+            i2 = np.array([i for i, p in enumerate(n.points) if p is None], int)
+            if len(i1) == 0 or len(i2) == 0:
+                continue
+            F = fundamental_from_poses(K, n.K, n.T_cw @ inverse_pose(kf.T_cw))
+            mask = epipolar_distance(F, kf.keypoints[i1], n.keypoints[i2]) < c.epipolar_px
+            a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance, c.ratio,
+                                   mutual=True, mask=mask)
+            a, b = i1[a], i2[b]
+            X = triangulate(K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b])
+            ok = triangulation_mask(X, K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b],
+                                    max_error_px=np.sqrt(CHI2_2DOF), min_parallax_deg=c.min_parallax_deg)
+            # single-scale keypoints: the two viewing distances must be alike (ORB-SLAM's scale check, one octave)
+            ratio = np.linalg.norm(X - n.center, axis=1) / np.maximum(np.linalg.norm(X - kf.center, axis=1), 1e-9)
+            ok &= (ratio < c.max_distance_ratio) & (ratio > 1.0 / c.max_distance_ratio)
+            for ia, ib, x in zip(a[ok], b[ok], X[ok], strict=True):
+                p = MapPoint(x, kf.descriptors[ia], kf)
+                p.add_observation(kf, int(ia))
+                p.add_observation(n, int(ib))
+                p.update_normal()
+                self.map.add_point(p)
+                self.recent.append(p)
+                free1[ia] = False
+
+    def _fuse(self, kf: KeyFrame) -> None:
+        targets = []
+        for n in self.map.neighbours(kf, self.cfg.fuse_neighbours):
+            for m in [n, *self.map.neighbours(n, 5)]:
+                if m is not kf and m not in targets:
+                    targets.append(m)
+        for t in targets:
+            self.fuse_points(t, alive_points(kf))
+        candidates = sorted({p for t in targets for p in alive_points(t)}, key=lambda p: p.id)
+        self.fuse_points(kf, candidates)
+        for p in alive_points(kf):
+            p.update_descriptor(self.binary)
+            p.update_normal()
+        self.map.update_connections(kf)
+
+    def fuse_points(self, kf: KeyFrame, points: list[MapPoint], T_cw: np.ndarray | None = None,
+                    replace_with_new: bool = False) -> int:
+        """Project points into kf and merge each with the point already at the matched keypoint (or add it).
+
+        `T_cw` overrides kf's pose (loop fusion with the corrected similarity). Returns the number of fusions.
+        """
+        points = [p for p in points if not p.is_bad and kf not in p.observations]
+        if not points:
+            return 0
+        X = np.stack([p.position for p in points])
+        T = kf.T_cw if T_cw is None else T_cw
+        Xc = transform(T, X)
+        z = Xc[:, 2]
+        uv = Xc[:, :2] / np.where(z > 1e-9, z, 1e-9)[:, None] @ kf.K[:2, :2].T + kf.K[:2, 2]
+        vis = np.nonzero((z > 0) & kf.in_image(uv))[0]
+        if len(vis) == 0:
+            return 0
+        desc = np.stack([points[i].descriptor for i in vis])
+        ip, ik = match_in_windows(uv[vis], desc, kf.keypoints, kf.descriptors, self.cfg.fuse_radius, self.binary,
+                                  self.max_distance, ratio=1.0)
+        fused = 0
+        for a, k in zip(vis[ip], ik, strict=True):
+            p = points[a]
+            if p.is_bad or kf in p.observations:
+                continue
+            q = kf.points[k]
+            if q is not None and not q.is_bad:
+                if replace_with_new or len(p.observations) > len(q.observations):
+                    self.map.replace_point(q, p)
+                else:
+                    self.map.replace_point(p, q)
+            else:
+                p.add_observation(kf, int(k))
+            fused += 1
+        return fused
+
+    # --- bundle adjustment -------------------------------------------------------------------------------------
+    def _local_bundle_adjustment(self, kf: KeyFrame) -> None:
+        c = self.cfg
+        local = [kf, *self.map.neighbours(kf, c.ba_keyframes - 1)]
+        points = sorted({p for k in local for p in alive_points(k)}, key=lambda p: p.id)
+        outside: dict[KeyFrame, int] = {}
+        local_set = set(local)
+        for p in points:
+            for k in p.observations:
+                if k not in local_set and not k.is_bad:
+                    outside[k] = outside.get(k, 0) + 1
+        fixed = sorted(outside, key=lambda k: (-outside[k], k.id))[: c.ba_fixed_keyframes]
+        first = self.map.keyframes[0]
+        if first in local_set and self.rig is None:  # the first keyframe anchors the monocular gauge
+            local.remove(first)
+            fixed.insert(0, first)
+        kfs = local + fixed
+        self.bundle_adjust(kfs, np.arange(len(kfs)) >= len(local), points, c.ba_iterations)
+
+    def bundle_adjust(self, kfs: list[KeyFrame], fixed: np.ndarray, points: list[MapPoint], iterations) -> None:
+        """Run gtsam BA over keyframes/points and write back poses, positions, and dropped outlier observations."""
+        if not points or len(kfs) < 2:
+            return
+        kidx = {k: i for i, k in enumerate(kfs)}
+        # a point seen once (without a stereo measurement) has no depth: leave it out, it would stall LM
+        points = [p for p in points if sum(k in kidx for k in p.observations) >= 2
+                  or (self.rig is not None and any(k in kidx and np.isfinite(k.right[i, 0])
+                                                   for k, i in p.observations.items() if k.right is not None))]
+        if not points:
+            return
+        rows = []
+        for j, p in enumerate(points):
+            for k, i in p.observations.items():
+                if k in kidx:
+                    rows.append((kidx[k], j, i, False))
+                    if self.rig is not None and k.right is not None and np.isfinite(k.right[i, 0]):
+                        rows.append((kidx[k], j, i, True))
+        if not rows:
+            return
+        oi, oj, ok, orr = (np.array(col) for col in zip(*rows, strict=True))
+        uv = np.stack([(kfs[a].right if r else kfs[a].keypoints)[b] for a, b, r in zip(oi, ok, orr, strict=True)])
+        K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)
+        poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), fixed,
+                                            np.stack([p.position for p in points]), oi, oj, uv, kfs[0].K,
+                                            orr, K_r, T_c0_c1, iterations=tuple(iterations))
+        for k, T, f in zip(kfs, poses, fixed, strict=True):
+            if not f:
+                k.T_cw = T
+        for p, x in zip(points, pts, strict=True):
+            p.position = x
+        for a, j in {(int(a), int(j)) for a, j in zip(oi[~inl], oj[~inl], strict=True)}:
+            k, p = kfs[a], points[j]
+            if k in p.observations:
+                k.points[p.observations.pop(k)] = None
+                if len(p.observations) < 2:
+                    self.map.remove_point(p)
+
+    # --- keyframe culling --------------------------------------------------------------------------------------
+    def _cull_keyframes(self, kf: KeyFrame) -> None:
+        for n in self.map.neighbours(kf):
+            if n is self.map.keyframes[0] or n is kf or n.loop_edges:
+                continue
+            pts = alive_points(n)
+            if self.rig is not None and n.depth is not None:
+                pts = [p for p in pts if np.isfinite(n.depth[p.observations[n]])]
+            if len(pts) < 20:
+                continue
+            redundant = sum(1 for p in pts if len(p.observations) - 1 >= 3)
+            if redundant > self.cfg.redundancy * len(pts):
+                self.map.remove_keyframe(n)
+
+
+class ThreadedLocalMapper(LocalMapper):
+    """The same mapper run by a worker thread: `insert_keyframe` queues, the thread calls `process`."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.queue: queue.Queue[KeyFrame | None] = queue.Queue()
+        self.busy = False
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, name="local-mapping", daemon=True)
+        self.thread.start()
+
+    def insert_keyframe(self, kf: KeyFrame) -> None:
+        self.queue.put(kf)
+
+    def idle(self) -> bool:
+        return self.queue.empty() and not self.busy
+
+    def _run(self) -> None:
+        while (kf := self.queue.get()) is not None:
+            self.busy = True
+            try:
+                self.process(kf)
+            except Exception as err:  # noqa: BLE001 (reported by finish(), never lost in the thread)
+                log.exception("Local mapping failed on %s.", kf)
+                self.error = err
+            finally:
+                self.busy = False
+
+    def finish(self) -> None:
+        self.queue.put(None)
+        self.thread.join()
+        if self.error is not None:
+            raise RuntimeError(f"Local mapping thread failed: {self.error}") from self.error

@@ -1,0 +1,255 @@
+"""Loop closing by global descriptors (paper 3.4).
+
+Keyframes' global descriptors live in one matrix; a query scores them all with eq. 9,
+``score = 1 - ||a - b||`` of the L2-normalised vectors, as one matrix product (``||a-b||^2 = 2 - 2 a.b``).
+Candidates are the top-k above a threshold (the larger of a fixed floor and the lowest score of the keyframe's own
+covisible neighbours, as ORB-SLAM does with DBoW2), excluding those neighbours; a candidate must be consistent over
+consecutive keyframes, then pass geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for
+stereo, then a guided search); the loop is corrected by propagating the similarity to the covisible group,
+fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point
+with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
+from ruslam.slam.geometry import pose_matrix, sim3_ransac
+from ruslam.slam.local_mapping import alive_points
+from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform
+from ruslam.slam.optimization import pose_graph_optimization
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopConfig:
+    enabled: bool = True
+    top_k: int = 5
+    min_score: float = 0.2  # floor of the eq. 9 score (range [-1, 1] for unit vectors)
+    consistency: int = 3  # consecutive keyframes that must agree on a candidate group
+    min_keyframes: int = 10  # no detection in a map smaller than this
+    exclude_recent: int = 10  # never match one of the last keyframes (they are odometry, not loops)
+    max_distance_binary: float = 64.0
+    max_distance_float: float = 1.0
+    ratio: float = 0.8
+    min_matches: int = 20  # descriptor matches before Sim3 RANSAC
+    min_inliers: int = 20
+    min_projected_matches: int = 40  # matches of the loop group's points after the guided search
+    search_radius: float = 10.0
+    covisibility_edge_weight: int = 100  # covisibility edges of the essential graph
+    global_bundle_adjustment: bool = True
+    global_ba_iterations: tuple[int, int] = (5, 10)
+
+
+class KeyFrameDatabase:
+    """Global descriptors of the map's keyframes, scored all at once (eq. 9)."""
+
+    def __init__(self):
+        self.keyframes: list[KeyFrame] = []
+        self.vectors: np.ndarray | None = None
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, kf: KeyFrame) -> None:
+        v = np.asarray(kf.global_descriptor, np.float32).ravel()
+        v = v / max(float(np.linalg.norm(v)), 1e-12)
+        if self.vectors is None:
+            self.vectors = np.zeros((64, len(v)), np.float32)
+        if self._n == len(self.vectors):
+            self.vectors = np.concatenate([self.vectors, np.zeros_like(self.vectors)])
+        self.vectors[self._n] = v
+        self.keyframes.append(kf)
+        self._n += 1
+
+    def scores(self, descriptor: np.ndarray) -> np.ndarray:
+        """Eq. 9 for every stored keyframe: 1 - ||a - b|| with a, b unit vectors, via one matrix product."""
+        if self._n == 0:
+            return np.zeros(0, np.float32)
+        q = np.asarray(descriptor, np.float32).ravel()
+        q = q / max(float(np.linalg.norm(q)), 1e-12)
+        dots = self.vectors[: self._n] @ q
+        return 1.0 - np.sqrt(np.maximum(2.0 - 2.0 * dots, 0.0))
+
+    def query(self, descriptor: np.ndarray, k: int, exclude=(), min_score: float = -np.inf) -> list[KeyFrame]:
+        """Top-k keyframes by score, above `min_score`, skipping culled and excluded ones."""
+        s = self.scores(descriptor)
+        out = []
+        for i in np.argsort(-s, kind="stable"):
+            kf = self.keyframes[i]
+            if s[i] < min_score or len(out) == k:
+                break
+            if not kf.is_bad and kf not in exclude:
+                out.append(kf)
+        return out
+
+
+class LoopCloser:
+    def __init__(self, map: Map, mapper, cfg: LoopConfig, binary: bool, stereo: bool, seed: int = 0):
+        self.map, self.mapper, self.cfg, self.binary, self.stereo, self.seed = map, mapper, cfg, binary, stereo, seed
+        self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
+        self.database = KeyFrameDatabase()
+        self.groups: list[tuple[set[KeyFrame], int]] = []
+        self.last_loop_id = -(10**9)
+        self.loops: list[tuple[int, int]] = []  # (frame index of the current keyframe, of the loop keyframe)
+
+    def process(self, kf: KeyFrame) -> None:
+        if kf.global_descriptor is None:
+            return
+        with self.map.lock:
+            if self.cfg.enabled and not kf.is_bad:
+                for cand in self._detect(kf):
+                    found = self._verify(kf, cand)
+                    if found is not None:
+                        self._correct(kf, cand, *found)
+                        break
+            self.database.add(kf)
+
+    # --- detection ---------------------------------------------------------------------------------------------
+    def _detect(self, kf: KeyFrame) -> list[KeyFrame]:
+        c = self.cfg
+        if len(self.map.keyframes) < c.min_keyframes or kf.id - self.last_loop_id < c.exclude_recent:
+            self.groups = []
+            return []
+        neighbours = self.map.neighbours(kf)
+        scores = self.database.scores(kf.global_descriptor)
+        position = {k: i for i, k in enumerate(self.database.keyframes)}
+        neighbour_scores = [scores[position[n]] for n in neighbours if n in position]
+        threshold = max(c.min_score, min(neighbour_scores)) if neighbour_scores else c.min_score
+        recent = {k for k in self.database.keyframes if k.id > kf.id - c.exclude_recent}
+        candidates = self.database.query(kf.global_descriptor, c.top_k, {kf, *neighbours, *recent}, threshold)
+        enough, groups = [], []
+        for cand in candidates:
+            group = {cand, *self.map.neighbours(cand)}
+            counts = [n + 1 for g, n in self.groups if g & group]
+            count = max(counts) if counts else 0
+            groups.append((group, count))
+            if count >= c.consistency - 1 and cand not in enough:
+                enough.append(cand)
+        self.groups = groups
+        log.debug("Loop query for %s: threshold %.3f, candidates %s, consistent %s.", kf, threshold,
+                  [(k.index, round(float(scores[position[k]]), 3)) for k in candidates], [k.index for k in enough])
+        return enough
+
+    # --- verification ------------------------------------------------------------------------------------------
+    def _verify(self, kf: KeyFrame, cand: KeyFrame):
+        c = self.cfg
+        ia, ib = kf.matched_indices(), cand.matched_indices()
+        if len(ia) < c.min_matches or len(ib) < c.min_matches:
+            return None
+        a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
+        if len(a) < c.min_matches:
+            return None
+        a, b = ia[a], ib[b]
+        P1 = transform(kf.T_cw, np.stack([kf.points[i].position for i in a]))
+        P2 = transform(cand.T_cw, np.stack([cand.points[i].position for i in b]))
+        out = sim3_ransac(P1, P2, kf.keypoints[a], cand.keypoints[b], kf.K, cand.K, with_scale=not self.stereo,
+                          seed=self.seed + kf.id, min_inliers=c.min_inliers)
+        if out is None:
+            return None
+        S12, _ = out
+        loop_kfs = [cand, *self.map.neighbours(cand, 10)]
+        loop_points = sorted({p for k in loop_kfs for p in alive_points(k)}, key=lambda p: p.id)
+        X = np.stack([p.position for p in loop_points])
+        Xc = transform(S12 @ cand.T_cw, X)
+        z = Xc[:, 2]
+        uv = Xc[:, :2] / np.where(z > 1e-9, z, 1e-9)[:, None] @ kf.K[:2, :2].T + kf.K[:2, 2]
+        vis = np.nonzero((z > 0) & kf.in_image(uv))[0]
+        desc = np.stack([loop_points[i].descriptor for i in vis]) if len(vis) else kf.descriptors[:0]
+        ip, _ = match_in_windows(uv[vis], desc, kf.keypoints, kf.descriptors, c.search_radius, self.binary,
+                                 self.max_distance, ratio=0.9)
+        if len(ip) < c.min_projected_matches:
+            log.debug("Loop candidate %s for %s rejected: %d projected matches.", cand, kf, len(ip))
+            return None
+        return S12, loop_points
+
+    # --- correction --------------------------------------------------------------------------------------------
+    def _correct(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: list[MapPoint]) -> None:
+        log.info("Loop closed: keyframe %d (frame %d) <-> keyframe %d (frame %d).", kf.id, kf.index, cand.id,
+                 cand.index)
+        self.map.update_connections(kf)
+        connected = [kf, *self.map.neighbours(kf)]
+        before = {k: k.T_cw.copy() for k in connected}
+        corrected = {kf: S12 @ cand.T_cw}
+        for k in connected[1:]:
+            corrected[k] = before[k] @ inverse_pose(before[kf]) @ corrected[kf]
+        corrected_by: dict[MapPoint, KeyFrame] = {}
+        for k in connected:
+            move = inverse_pose(corrected[k]) @ before[k]
+            for p in alive_points(k):
+                if p not in corrected_by:
+                    p.position = transform(move, p.position[None])[0]
+                    corrected_by[p] = k
+            k.T_cw = _rigid(corrected[k])
+        previous = {k: set(self.map.neighbours(k)) for k in connected}
+        for k in connected:
+            self.mapper.fuse_points(k, loop_points, replace_with_new=True)
+        new_links = {}
+        for k in connected:
+            self.map.update_connections(k)
+            new_links[k] = set(self.map.neighbours(k)) - previous[k] - set(connected)
+        kf.loop_edges.add(cand)
+        cand.loop_edges.add(kf)
+        self._optimize_essential_graph(kf, cand, before, corrected, corrected_by, new_links)
+        for p in self.map.points:
+            p.update_normal()
+        if self.cfg.global_bundle_adjustment:
+            kfs = [k for k in self.map.keyframes if not k.is_bad]
+            fixed = np.zeros(len(kfs), bool)
+            fixed[0] = True
+            self.mapper.bundle_adjust(kfs, fixed, sorted(self.map.points, key=lambda p: p.id),
+                                      self.cfg.global_ba_iterations)
+        self.last_loop_id = kf.id
+        self.loops.append((kf.index, cand.index))
+        self.groups = []
+
+    def _optimize_essential_graph(self, kf, cand, before, corrected, corrected_by, new_links) -> None:
+        kfs = [k for k in self.map.keyframes if not k.is_bad]
+        idx = {k: i for i, k in enumerate(kfs)}
+        initial = np.stack([corrected.get(k, k.T_cw) for k in kfs])  # corrected similarities, or current poses
+        odometry = [before.get(k, k.T_cw) for k in kfs]  # relative measurements keep the pre-loop odometry
+        edges, rel, seen = [], [], set()
+
+        def add(a: KeyFrame, b: KeyFrame, poses) -> None:
+            if a in idx and b in idx and a is not b and (b, a) not in seen and (a, b) not in seen:
+                seen.add((a, b))
+                edges.append((idx[a], idx[b]))
+                rel.append(poses[idx[a]] @ inverse_pose(poses[idx[b]]))
+
+        for k, links in new_links.items():
+            for n in links:
+                add(k, n, initial)
+        add(kf, cand, initial)
+        for k in kfs:
+            if k.parent is not None:
+                add(k, k.parent, odometry)
+            for m in k.loop_edges:
+                add(k, m, initial)
+            for n, w in self.map.covisibility.get(k, {}).items():
+                if w >= self.cfg.covisibility_edge_weight and n.id < k.id:
+                    add(k, n, odometry)
+        out = pose_graph_optimization(initial, np.array(edges), np.stack(rel), [idx[cand]],
+                                      similarity=not self.stereo)
+        for p in self.map.points:
+            ref = corrected_by.get(p, p.reference)
+            if ref not in idx:
+                ref = next((k for k in p.observations if k in idx), None)
+                if ref is None:
+                    continue
+            i = idx[ref]
+            frame_of_point = initial[i] if p in corrected_by else odometry[i]  # the pose the point agrees with
+            p.position = transform(inverse_pose(out[i]) @ frame_of_point, p.position[None])[0]
+        for k, S in zip(kfs, out, strict=True):
+            k.T_cw = _rigid(S)
+
+
+def _rigid(S: np.ndarray) -> np.ndarray:
+    """[sR | t] -> [R | t/s]: the camera pose in the scale of the corrected map."""
+    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    return pose_matrix(S[:3, :3] / s, S[:3, 3] / s)

@@ -1,0 +1,207 @@
+"""`run(sequence, extractor, cfg) -> SLAMTrajectory`: the SLAM over a sequence, plus the TUM writer.
+
+Synchronous mode (default, used by tests): local mapping and loop closing run inline after each keyframe and every
+RANSAC is seeded, so a run is reproducible. Threaded mode: the same mapper in a worker thread
+(`ThreadedLocalMapper`). Bad frames (unreadable, black, featureless) are skipped with a warning and tracking
+resumes; a sequence that never initialises returns an empty trajectory with a warning, never a traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from tqdm.auto import tqdm
+
+from ruslam.slam.feature_matching import match_knn_ratio
+from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, project, triangulate
+from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
+from ruslam.slam.loop_closing import LoopCloser, LoopConfig
+from ruslam.slam.map import Frame, Map, inverse_pose
+from ruslam.slam.tracking import Tracker, TrackingConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SLAMConfig:
+    sensor: str = "auto"  # "mono", "stereo", or "auto" (stereo when the sequence has two cameras)
+    synchronous: bool = True
+    seed: int = 0
+    progress: bool = True
+    max_frames: int | None = None
+    stereo_epipolar_px: float = 2.0
+    stereo_max_depth_baselines: float = 80.0
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+
+
+@dataclass
+class SLAMTrajectory:
+    """Poses T_world_cam0 [N, 4, 4] of the tracked frames, plus what the run did."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+    frame_indices: np.ndarray  # index in the sequence of each pose
+    num_frames: int
+    timings: np.ndarray  # [num_frames] seconds per frame (extraction + tracking + inline mapping)
+    num_keyframes: int = 0
+    num_points: int = 0
+    loops: list = field(default_factory=list)  # (frame index, loop frame index) of each closed loop
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def tracked_ratio(self) -> float:
+        return len(self) / max(self.num_frames, 1)
+
+    def write_tum(self, path: str | Path) -> None:
+        write_tum(path, self.timestamps, self.poses)
+
+
+def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
+    """TUM format ``timestamp tx ty tz qx qy qz qw``, written to a temporary name and then renamed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    table = np.column_stack([timestamps, poses[:, :3, 3] if len(poses) else np.zeros((0, 3)), q])
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.write("# timestamp tx ty tz qx qy qz qw\n")
+        np.savetxt(f, table, fmt="%.9f")
+    tmp.replace(path)
+
+
+def as_config(cfg) -> SLAMConfig:
+    """SLAMConfig from None (defaults), a SLAMConfig, or a Hydra/dict config with `_target_`s."""
+    if cfg is None:
+        return SLAMConfig()
+    if isinstance(cfg, SLAMConfig):
+        return cfg
+    from hydra.utils import instantiate  # noqa: PLC0415 (only configs need hydra)
+
+    out = instantiate(cfg)
+    if not isinstance(out, SLAMConfig):
+        raise TypeError(f"SLAM config must build a SLAMConfig (`_target_: ruslam.slam.system.SLAMConfig`), "
+                        f"got {type(out).__name__}.")
+    return out
+
+
+def make_frame(index, timestamp, images, extractor, sequence, stereo: bool, cfg: SLAMConfig) -> Frame | None:
+    """Extract features (both cameras in stereo), undistort them, and triangulate stereo matches."""
+    cam0 = sequence.cameras[0]
+    out = extractor.extract(images[0])
+    kps = cam0.undistort_points(out["keypoints"]) if len(out["keypoints"]) else np.zeros((0, 2))
+    if len(kps) < cfg.tracking.min_keypoints:
+        return None
+    g = out.get("global_descriptor")
+    frame = Frame(index=index, timestamp=float(timestamp), keypoints=kps.astype(np.float64),
+                  descriptors=out["descriptors"], K=cam0.K, image_size=(cam0.width, cam0.height),
+                  global_descriptor=None if g is None else np.asarray(g, np.float32))
+    if stereo:
+        cam1 = sequence.cameras[1]
+        out_r = extractor.extract(images[1])
+        kps_r = cam1.undistort_points(out_r["keypoints"]) if len(out_r["keypoints"]) else np.zeros((0, 2))
+        frame.right = np.full((len(kps), 2), np.nan)
+        frame.depth = np.full(len(kps), np.nan)
+        if len(kps_r) == 0:
+            return frame
+        T_c1_c0 = inverse_pose(np.asarray(sequence.T_cam0_cam1, np.float64))
+        mask = epipolar_distance(fundamental_from_poses(cam0.K, cam1.K, T_c1_c0), kps, kps_r) < cfg.stereo_epipolar_px
+        t = cfg.tracking
+        a, b = match_knn_ratio(out["descriptors"], out_r["descriptors"], extractor.binary,
+                               t.max_distance_binary if extractor.binary else t.max_distance_float, t.ratio,
+                               mutual=True, mask=mask)
+        X = triangulate(cam0.K, np.eye(4), kps[a], cam1.K, T_c1_c0, kps_r[b])
+        u0, z0 = project(cam0.K, np.eye(4), X)
+        u1, z1 = project(cam1.K, T_c1_c0, X)
+        baseline = np.linalg.norm(T_c1_c0[:3, 3])
+        ok = (z0 > 0) & (z1 > 0) & (z0 < cfg.stereo_max_depth_baselines * baseline)
+        ok &= (np.sum((u0 - kps[a]) ** 2, 1) < 4) & (np.sum((u1 - kps_r[b]) ** 2, 1) < 4)
+        frame.right[a[ok]] = kps_r[b[ok]]
+        frame.depth[a[ok]] = z0[ok]
+    return frame
+
+
+def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
+    """Run the SLAM over `sequence` (ruslam.slam.readers.Sequence) with any extractor of the project contract."""
+    cfg = as_config(cfg)
+    if isinstance(extractor, str):
+        from ruslam.models.registry import load_extractor  # noqa: PLC0415
+
+        extractor = load_extractor(extractor)
+    stereo = _sensor(sequence, cfg.sensor)
+    binary = bool(getattr(extractor, "binary", False))
+    rig = (sequence.cameras[1].K, np.asarray(sequence.T_cam0_cam1, np.float64)) if stereo else None
+    slam_map = Map()
+    loop_closer = LoopCloser(slam_map, None, cfg.loop, binary, stereo, cfg.seed)
+    mapper_cls = LocalMapper if cfg.synchronous else ThreadedLocalMapper
+    mapper = mapper_cls(slam_map, cfg.mapping, binary, rig, loop_closer)
+    loop_closer.mapper = mapper
+    tracker = Tracker(slam_map, mapper, loop_closer.database, cfg.tracking, binary, rig, cfg.seed)
+    n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
+    timings = np.zeros(n)
+    records = []
+    skipped = 0
+    try:
+        for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
+            start = time.perf_counter()
+            frame = _load_frame(i, sequence, extractor, stereo, cfg)
+            if frame is None:
+                skipped += 1
+            elif tracker.track(frame):
+                if tracker.initial_frame is not None:  # the first frame of a monocular initialisation
+                    kf1, tracker.initial_frame = tracker.initial_frame, None
+                    records.append((kf1.index, kf1.timestamp, kf1, np.eye(4)))
+                ref = tracker.reference
+                records.append((i, frame.timestamp, ref, frame.T_cw @ inverse_pose(ref.T_cw)))
+            timings[i] = time.perf_counter() - start
+    finally:
+        mapper.finish()
+    if not records:
+        log.warning("SLAM on %s: no frame was tracked (initialisation never succeeded on %d frames, %d skipped).",
+                    getattr(sequence, "name", "sequence"), n, skipped)
+    poses = np.stack([inverse_pose(T_cr @ ref.pose()) for _, _, ref, T_cr in records]) if records else \
+        np.zeros((0, 4, 4))
+    return SLAMTrajectory(
+        timestamps=np.array([r[1] for r in records], np.float64), poses=poses,
+        frame_indices=np.array([r[0] for r in records], int), num_frames=n, timings=timings,
+        num_keyframes=len(slam_map.keyframes), num_points=len(slam_map.points), loops=list(loop_closer.loops),
+    )
+
+
+def _sensor(sequence, sensor: str) -> bool:
+    """True for stereo; validates that the sequence can serve the requested sensor."""
+    if sensor not in ("auto", "mono", "stereo"):
+        raise ValueError(f"SLAM sensor must be 'auto', 'mono' or 'stereo', got {sensor!r}.")
+    cams = len(sequence.cameras)
+    if sensor == "stereo" and (cams < 2 or sequence.T_cam0_cam1 is None):
+        raise ValueError(f"Stereo SLAM needs two cameras and T_cam0_cam1; sequence "
+                         f"{getattr(sequence, 'name', '')!r} has {cams} camera(s).")
+    if len(sequence) == 0:
+        raise ValueError(f"Sequence {getattr(sequence, 'name', '')!r} has no frames.")
+    return sensor == "stereo" or (sensor == "auto" and cams >= 2 and sequence.T_cam0_cam1 is not None)
+
+
+def _load_frame(i, sequence, extractor, stereo, cfg) -> Frame | None:
+    """Frame i, or None (with a warning) when it cannot be read or has too few features."""
+    try:
+        images = sequence.load(i)
+    except (OSError, ValueError) as err:  # readers raise FrameReadError(ValueError) for corrupt/missing files
+        log.warning("Frame %d skipped: %s", i, err)
+        return None
+    try:
+        frame = make_frame(i, sequence.timestamps[i], images, extractor, sequence, stereo, cfg)
+    except (ValueError, TypeError) as err:  # extractor contract violations (wrong shape/dtype)
+        log.warning("Frame %d skipped: %s", i, err)
+        return None
+    if frame is None:
+        log.warning("Frame %d skipped: fewer than %d keypoints (black or featureless image).", i,
+                    cfg.tracking.min_keypoints)
+    return frame

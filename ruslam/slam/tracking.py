@@ -1,0 +1,368 @@
+"""Tracking (paper 3.3): initialisation, constant-velocity window search, reference-keyframe kNN fallback,
+local-map tracking, motion-only pose optimisation, keyframe decision and relocalisation by retrieval.
+
+The Tracker holds no threads: it calls `mapper.insert_keyframe(kf)` and `mapper.idle()`, which the synchronous
+mapper runs inline and the threaded one queues.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
+from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
+from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, transform
+from ruslam.slam.optimization import bundle_adjustment, optimize_pose
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrackingConfig:
+    max_distance_binary: float = 64.0  # Hamming bits (of 256) for ORB
+    max_distance_float: float = 1.0  # L2 between unit descriptors (0..2)
+    ratio: float = 0.8  # kNN ratio test
+    window_ratio: float = 0.9  # ratio test inside a search window
+    window_radius: float = 15.0  # px, constant-velocity search (doubled on failure)
+    local_map_radius: float = 5.0  # px, local-map search
+    min_inliers: int = 30  # tracked map points for a frame to count as tracked
+    init_min_matches: int = 100
+    init_window: float = 100.0  # px, monocular initialisation search window
+    init_max_frames: int = 20  # restart initialisation from a newer frame after this many failures
+    init_min_parallax_deg: float = 1.0
+    min_keypoints: int = 50  # fewer (black / featureless frame): skip the frame
+    kf_max_frames: int = 10  # insert a keyframe at least this often (frames) ...
+    kf_min_frames: int = 1  # ... and at most this often
+    kf_ratio_mono: float = 0.9  # tracked points / reference keyframe points below which a keyframe is needed
+    kf_ratio_stereo: float = 0.75
+    stereo_close_baselines: float = 40.0  # stereo points closer than this many baselines count as "close"
+    local_keyframes: int = 20
+    reloc_candidates: int = 5
+
+
+def _alive(p: MapPoint | None) -> MapPoint | None:
+    """Follow fusions to the surviving point; None for a culled one."""
+    while p is not None and p.is_bad:
+        p = p.replaced_by
+    return p
+
+
+class Tracker:
+    def __init__(self, map: Map, mapper, database, cfg: TrackingConfig, binary: bool, rig=None, seed: int = 0):
+        self.map, self.mapper, self.database, self.cfg = map, mapper, database, cfg
+        self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
+        self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
+        self.state = "init"
+        self.init_frame: Frame | None = None
+        self.last: Frame | None = None
+        self.last_ref: tuple[KeyFrame, np.ndarray] | None = None  # (reference kf, T_last_ref)
+        self.velocity: np.ndarray | None = None
+        self.reference: KeyFrame | None = None
+        self.last_kf_index = -10**9
+        self.initial_frame: KeyFrame | None = None  # set when monocular initialisation also poses an older frame
+
+    # --- entry point -------------------------------------------------------------------------------------------
+    def track(self, frame: Frame) -> bool:
+        """Estimate `frame.T_cw`; True when the frame is tracked against the map."""
+        with self.map.lock:
+            if self.state == "init":
+                ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
+                if ok:
+                    self.state = "ok"
+                return ok
+            ok = self._track_frame(frame) if self.state == "ok" else self._relocalize(frame)
+            if ok:
+                ok = self._track_local_map(frame)
+                if not ok:
+                    log.debug("Frame %d: local map tracking failed (%d inliers).", frame.index,
+                              int(np.sum([p is not None for p in frame.points]) - frame.outliers.sum()))
+            elif self.state == "ok":
+                log.debug("Frame %d: frame-to-frame tracking failed.", frame.index)
+            self.state = "ok" if ok else "lost"
+            if not ok:
+                self.velocity = None
+                return False
+            if self.last is not None and self.last.T_cw is not None:
+                self.velocity = frame.T_cw @ inverse_pose(self.last.T_cw)
+            self._drop_outliers(frame)
+            if self._need_keyframe(frame):
+                self._insert_keyframe(frame)
+            self.last = frame
+            self.last_ref = (self.reference, frame.T_cw @ inverse_pose(self.reference.T_cw))
+            return True
+
+    # --- initialisation ----------------------------------------------------------------------------------------
+    def _initialize_stereo(self, frame: Frame) -> bool:
+        if frame.depth is None or np.sum(np.isfinite(frame.depth)) < self.cfg.init_min_matches:
+            return False
+        frame.T_cw = np.eye(4)
+        kf = KeyFrame(frame)
+        self.map.add_keyframe(kf)
+        self._add_stereo_points(kf, all_points=True)
+        frame.points = list(kf.points)
+        self._start(frame, kf, [kf])
+        return True
+
+    def _initialize_mono(self, frame: Frame) -> bool:
+        c = self.cfg
+        ref = self.init_frame
+        if ref is None or frame.index - ref.index > c.init_max_frames:
+            self.init_frame = frame if len(frame) >= c.init_min_matches else None
+            return False
+        ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors, c.init_window,
+                                  self.binary, self.max_distance, c.window_ratio)
+        if len(ip) < c.init_min_matches:
+            if len(ip) < c.init_min_matches // 2:
+                self.init_frame = frame if len(frame) >= c.init_min_matches else None
+            return False
+        out = two_view_initialization(ref.keypoints[ip], frame.keypoints[ik], frame.K, self.seed + frame.index,
+                                      c.init_min_parallax_deg, c.init_min_matches // 2)
+        if out is None:
+            return False
+        T2, X, good, model = out
+        ref.T_cw, frame.T_cw = np.eye(4), T2
+        kf1, kf2 = KeyFrame(ref), KeyFrame(frame)
+        for k in (kf1, kf2):
+            self.map.add_keyframe(k)
+        for a, b, x in zip(ip[good], ik[good], X[good], strict=True):
+            p = MapPoint(x, frame.descriptors[b], kf1)
+            p.add_observation(kf1, int(a))
+            p.add_observation(kf2, int(b))
+            self.map.add_point(p)
+        self._global_bundle_adjustment([kf1, kf2])
+        seen = [p.position for p in kf1.points if p is not None]
+        median = float(np.median(transform(kf1.T_cw, np.stack(seen))[:, 2])) if seen else 0.0
+        if median <= 0 or sum(p is not None for p in kf2.points) < c.init_min_matches // 2:
+            log.warning("Frame %d: monocular initialisation rejected after bundle adjustment.", frame.index)
+            self._reset()
+            return False
+        for p in self.map.points:  # unit median depth, as ORB-SLAM
+            p.position = p.position / median
+        kf2.T_cw[:3, 3] /= median
+        frame.T_cw = kf2.T_cw.copy()
+        frame.points = list(kf2.points)
+        log.info("Initialised (%s) from frames %d and %d with %d points.", model, ref.index, frame.index,
+                 len(self.map.points))
+        self._start(frame, kf2, [kf1, kf2])
+        self.initial_frame = kf1
+        return True
+
+    def _global_bundle_adjustment(self, kfs: list[KeyFrame]) -> None:
+        points = sorted({p for k in kfs for p in k.points if p is not None}, key=lambda p: p.id)
+        pidx = {p: j for j, p in enumerate(points)}
+        obs = [(i, pidx[p], k.keypoints[j]) for i, k in enumerate(kfs) for j, p in enumerate(k.points) if p]
+        oi, oj = np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
+        poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), np.eye(len(kfs), dtype=bool)[0],
+                                            np.stack([p.position for p in points]), oi, oj,
+                                            np.stack([o[2] for o in obs]), kfs[0].K, iterations=(10, 10))
+        for k, T in zip(kfs, poses, strict=True):
+            k.T_cw = T
+        for p, x in zip(points, pts, strict=True):
+            p.position = x
+        for o in np.nonzero(~inl)[0]:
+            k, p = kfs[oi[o]], points[oj[o]]
+            k.points[p.observations.pop(k)] = None
+            if len(p.observations) < 2:
+                self.map.remove_point(p)
+
+    def _reset(self) -> None:
+        for kf in list(self.map.keyframes):
+            kf.is_bad = True
+        self.map.keyframes.clear()
+        self.map.points.clear()
+        self.map.covisibility.clear()
+        self.init_frame = None
+
+    def _start(self, frame: Frame, kf: KeyFrame, kfs: list[KeyFrame]) -> None:
+        self.reference = kf
+        self.last = frame
+        self.last_ref = (kf, frame.T_cw @ inverse_pose(kf.T_cw))
+        self.last_kf_index = frame.index
+        self.velocity = None
+        for k in kfs:
+            self.mapper.insert_keyframe(k)
+
+    # --- frame-to-frame ----------------------------------------------------------------------------------------
+    def _track_frame(self, frame: Frame) -> bool:
+        ref, T_lr = self.last_ref
+        self.last.T_cw = T_lr @ ref.pose()  # the reference may have moved (BA, loop closure)
+        if self.velocity is not None:
+            frame.T_cw = self.velocity @ self.last.T_cw
+            pts = [p for p in map(_alive, self.last.points) if p is not None]
+            for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
+                frame.points = [None] * len(frame)
+                if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
+                    return True
+        return self._track_reference_keyframe(frame)
+
+    def _track_reference_keyframe(self, frame: Frame) -> bool:
+        """Fallback: kNN + ratio test against the reference keyframe's points, then the pose (PnP if needed)."""
+        frame.points = [None] * len(frame)
+        ref = self.reference
+        idx = ref.matched_indices()
+        if len(idx) == 0:
+            return False
+        ia, ib = match_knn_ratio(ref.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
+                                 self.cfg.ratio)
+        if len(ia) < 15:
+            return False
+        for a, b in zip(idx[ia], ib, strict=True):
+            frame.points[b] = ref.points[a]
+        frame.T_cw = self.last.T_cw.copy()
+        if self._optimize(frame) >= 10:
+            return True
+        return self._pnp(frame, [ref.points[a] for a in idx[ia]], ib)
+
+    def _pnp(self, frame: Frame, points: list[MapPoint], kp_idx: np.ndarray) -> bool:
+        X = np.stack([p.position for p in points])
+        out = solve_pnp_ransac(X, frame.keypoints[kp_idx], frame.K, seed=self.seed + frame.index)
+        if out is None:
+            return False
+        frame.T_cw, inliers = out
+        frame.points = [None] * len(frame)
+        for p, k in zip(np.array(points, dtype=object)[inliers], kp_idx[inliers], strict=True):
+            frame.points[k] = p
+        return self._optimize(frame) >= 10
+
+    # --- local map ---------------------------------------------------------------------------------------------
+    def _track_local_map(self, frame: Frame) -> bool:
+        counts: dict[KeyFrame, int] = {}
+        for p in frame.points:
+            if p is not None and not p.is_bad:
+                for kf in p.observations:
+                    counts[kf] = counts.get(kf, 0) + 1
+        if not counts:
+            return False
+        local = sorted(counts, key=lambda k: -counts[k])[: self.cfg.local_keyframes]
+        self.reference = local[0]
+        for kf in list(local):
+            for n in self.map.neighbours(kf, 10):
+                if n not in counts and len(local) < 2 * self.cfg.local_keyframes:
+                    counts[n] = 0
+                    local.append(n)
+        matched = {p for p in frame.points if p is not None}
+        candidates = sorted({p for kf in local for p in kf.points if p is not None and not p.is_bad} - matched,
+                            key=lambda p: p.id)
+        self._search_points(frame, candidates, self.cfg.local_map_radius, count_visible=True)
+        inliers = self._optimize(frame)
+        for p, out in zip(frame.points, frame.outliers, strict=True):
+            if p is not None and not out:
+                p.found += 1
+        return inliers >= self.cfg.min_inliers
+
+    def _search_points(self, frame: Frame, points: list[MapPoint], radius: float, count_visible=False) -> int:
+        """Project map points with frame.T_cw and match them in windows; returns the number of matched points."""
+        if points:
+            X = np.stack([p.position for p in points])
+            uv, z = frame.project(X)
+            centre = frame.center
+            rays = X - centre
+            dist = np.linalg.norm(rays, axis=1)
+            normals = np.stack([p.normal for p in points])
+            cos = np.sum(rays * normals, 1) / np.maximum(dist, 1e-12)
+            visible = (z > 0) & frame.in_image(uv) & ((cos > 0.5) | (np.abs(normals).sum(1) == 0))
+            vis = np.nonzero(visible)[0]
+            if count_visible:
+                for i in vis:
+                    points[i].visible += 1
+            desc = np.stack([points[i].descriptor for i in vis]) if len(vis) else frame.descriptors[:0]
+            free = np.array([p is None for p in frame.points], bool)
+            ip, ik = match_in_windows(uv[vis], desc, frame.keypoints, frame.descriptors, radius, self.binary,
+                                      self.max_distance, self.cfg.window_ratio, available=free)
+            for a, b in zip(vis[ip], ik, strict=True):
+                frame.points[b] = points[a]
+        return sum(p is not None for p in frame.points)
+
+    def _optimize(self, frame: Frame) -> int:
+        """Motion-only pose optimisation over the frame's matches; returns the number of inliers."""
+        idx = np.array([i for i, p in enumerate(frame.points) if p is not None], int)
+        frame.outliers = np.zeros(len(frame), bool)
+        if len(idx) < 6:
+            return 0
+        X = np.stack([frame.points[i].position for i in idx])
+        uv_r = frame.right[idx] if self.rig is not None and frame.right is not None else None
+        K_r, T_c1_c0 = (self.rig[0], inverse_pose(self.rig[1])) if self.rig is not None else (None, None)
+        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0)
+        frame.T_cw = T
+        frame.outliers[idx[~inl]] = True
+        return int(inl.sum())
+
+    def _drop_outliers(self, frame: Frame) -> None:
+        for i in np.nonzero(frame.outliers)[0]:
+            frame.points[i] = None
+        frame.outliers[:] = False
+
+    # --- keyframes ---------------------------------------------------------------------------------------------
+    def _need_keyframe(self, frame: Frame) -> bool:
+        c = self.cfg
+        since = frame.index - self.last_kf_index
+        if since < c.kf_min_frames:
+            return False
+        min_obs = 2 if len(self.map.keyframes) <= 2 else 3
+        ref_points = sum(1 for p in self.reference.points if p is not None and len(p.observations) >= min_obs)
+        tracked = sum(p is not None for p in frame.points)
+        ratio = c.kf_ratio_stereo if self.rig is not None else c.kf_ratio_mono
+        need_close = False
+        if self.rig is not None and frame.depth is not None:
+            close = frame.depth < c.stereo_close_baselines * np.linalg.norm(self.rig[1][:3, 3])
+            has = np.array([p is not None for p in frame.points])
+            need_close = np.sum(close & has) < 100 and np.sum(close & ~has) > 70
+        weak = tracked < ratio * ref_points or need_close
+        return bool((since >= c.kf_max_frames or self.mapper.idle()) and weak and tracked > 15)
+
+    def _insert_keyframe(self, frame: Frame) -> None:
+        kf = KeyFrame(frame)
+        self.map.add_keyframe(kf)
+        if self.rig is not None:
+            self._add_stereo_points(kf, all_points=False)
+        self.reference = kf
+        self.last_kf_index = frame.index
+        self.mapper.insert_keyframe(kf)
+
+    def _add_stereo_points(self, kf: KeyFrame, all_points: bool) -> None:
+        """ORB-SLAM's close stereo points: new map points from stereo depth for unmatched keypoints."""
+        if kf.depth is None:
+            return
+        free = np.array([p is None for p in kf.points]) & np.isfinite(kf.depth)
+        idx = np.nonzero(free)[0]
+        idx = idx[np.argsort(kf.depth[idx], kind="stable")]
+        if not all_points:
+            limit = self.cfg.stereo_close_baselines * np.linalg.norm(self.rig[1][:3, 3])
+            idx = idx[(kf.depth[idx] < limit) | (np.arange(len(idx)) < 100)]
+        Kinv = np.linalg.inv(kf.K)
+        T_wc = inverse_pose(kf.T_cw)
+        for i in idx:
+            xc = Kinv @ np.r_[kf.keypoints[i], 1.0] * kf.depth[i]
+            p = MapPoint(T_wc[:3, :3] @ xc + T_wc[:3, 3], kf.descriptors[i], kf)
+            p.add_observation(kf, int(i))
+            p.update_normal()
+            self.map.add_point(p)
+
+    # --- relocalisation ----------------------------------------------------------------------------------------
+    def _relocalize(self, frame: Frame) -> bool:
+        """Candidates by global-descriptor retrieval (or the latest keyframes without one), then kNN + PnP."""
+        if frame.global_descriptor is not None and self.database is not None and len(self.database):
+            candidates = self.database.query(frame.global_descriptor, k=self.cfg.reloc_candidates)
+        else:
+            candidates = self.map.keyframes[-self.cfg.reloc_candidates:][::-1]
+        for kf in candidates:
+            idx = kf.matched_indices()
+            if len(idx) < 15:
+                continue
+            ia, ib = match_knn_ratio(kf.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
+                                     self.cfg.ratio)
+            if len(ia) < 15:
+                continue
+            frame.points = [None] * len(frame)
+            if not self._pnp(frame, [kf.points[a] for a in idx[ia]], ib):
+                continue
+            self._search_points(frame, [p for p in kf.points if p is not None and not p.is_bad], 10.0)
+            if self._optimize(frame) >= 50:
+                log.info("Frame %d relocalised against keyframe %d.", frame.index, kf.id)
+                self.reference = kf
+                return True
+        frame.T_cw = None
+        return False

@@ -1,0 +1,106 @@
+"""The whole SLAM on exact synthetic sequences (tests/slam_fakes.py): accuracy, stereo scale, bad input, modes."""
+
+import logging
+
+import numpy as np
+import pytest
+from slam_fakes import FakeExtractor, FakeSequence
+
+from ruslam.eval.trajectory import evaluate_trajectory
+from ruslam.slam import SLAMConfig, run
+from ruslam.slam.readers import Trajectory, read_tum_trajectory
+
+
+def ape_ratio(seq, result, alignment):
+    gt = Trajectory(seq.timestamps, seq.poses)
+    errors = evaluate_trajectory(Trajectory(result.timestamps, result.poses), gt, alignment)
+    return errors.ape_rmse / gt.path_length(), errors.scale
+
+
+def arc(num_frames=36, **kw):
+    """A quarter of the circuit: enough for initialisation, keyframes, local BA and culling."""
+    return FakeSequence(num_frames, laps=0.25, landmarks=8000, **kw)
+
+
+@pytest.fixture(scope="module")
+def mono_runs():
+    seq = arc()
+    cfg = SLAMConfig(progress=False)
+    return seq, run(seq, FakeExtractor(seq), cfg), run(seq, FakeExtractor(seq), cfg)
+
+
+def test_monocular_tracks_every_frame_within_one_percent(mono_runs):
+    seq, result, _ = mono_runs
+    assert result.tracked_ratio == 1.0
+    assert np.array_equal(result.frame_indices, np.arange(len(seq)))
+    ratio, _ = ape_ratio(seq, result, "sim3")
+    assert ratio < 0.01
+    assert result.num_keyframes >= 3 and result.num_points > 500
+    assert result.timings.shape == (len(seq),) and np.all(result.timings > 0)
+
+
+def test_synchronous_mode_is_deterministic(mono_runs):
+    _, a, b = mono_runs
+    assert np.array_equal(a.poses, b.poses)
+
+
+def test_stereo_recovers_metric_scale():
+    seq = arc(stereo=True)
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert result.tracked_ratio == 1.0
+    ratio, _ = ape_ratio(seq, result, "se3")
+    assert ratio < 0.01
+    _, scale = ape_ratio(seq, result, "sim3")
+    assert abs(scale - 1.0) < 0.02  # the 12 cm baseline fixes the scale: no similarity needed
+
+
+def test_binary_descriptors_and_threaded_mode():
+    seq = arc(30)
+    result = run(seq, FakeExtractor(seq, binary=True), SLAMConfig(progress=False, synchronous=False))
+    assert result.tracked_ratio > 0.95
+    assert ape_ratio(seq, result, "sim3")[0] < 0.02
+
+
+def test_black_and_corrupt_frames_are_skipped_and_tracking_resumes(caplog):
+    seq = arc(30, black=[12], corrupt=[13])
+    with caplog.at_level(logging.WARNING):
+        result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert set(result.frame_indices) == set(range(30)) - {12, 13}
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+    messages = " ".join(r.getMessage() for r in caplog.records)
+    assert "Frame 12 skipped" in messages and "Frame 13 skipped" in messages
+
+
+def test_sequence_that_never_initialises_returns_empty_trajectory(caplog):
+    seq = arc(8, black=range(8))
+    with caplog.at_level(logging.WARNING):
+        result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert len(result) == 0 and result.tracked_ratio == 0.0
+    assert "no frame was tracked" in caplog.text
+
+
+def test_invalid_sensor_is_one_clear_error():
+    seq = arc(5)
+    with pytest.raises(ValueError, match="two cameras"):
+        run(seq, FakeExtractor(seq), SLAMConfig(sensor="stereo", progress=False))
+
+
+def test_tum_output_round_trips(tmp_path, mono_runs):
+    _, result, _ = mono_runs
+    path = tmp_path / "sub" / "traj.txt"
+    result.write_tum(path)
+    back = read_tum_trajectory(path)
+    assert np.allclose(back.timestamps, result.timestamps)
+    assert np.allclose(back.poses, result.poses, atol=1e-6)
+    assert not list(tmp_path.rglob("*.tmp"))
+
+
+def test_configs_build_the_slam_config():
+    from conftest import compose
+    from hydra.utils import instantiate
+
+    for name, sensor in (("default", "auto"), ("mono", "mono"), ("stereo", "stereo")):
+        cfg = compose(f"slam/{name}", [])
+        built = instantiate(cfg.slam if "slam" in cfg else cfg)
+        assert isinstance(built, SLAMConfig) and built.sensor == sensor
+        assert built.tracking.min_inliers > 0 and built.loop.top_k > 0
