@@ -54,7 +54,16 @@ def test_correlate_equals_kornia_motion_blur():
         assert k.shape[-1] == 2 * round(length / 2) + 1 and abs(float(k.sum()) - 1) < 1e-6
         np.testing.assert_allclose(correlate(x, k).numpy(), motion_blur(x, k.shape[-1], angle, 0.0).numpy(),
                                    atol=1e-6)
-    assert motion_kernel(20.0, 0.5) is None
+    assert motion_kernel(20.0, 0.5) is None and motion_kernel(20.0, 1.0) is None
+
+
+def test_per_image_blur_angles():
+    rgb, depth, beta, A = _batch()
+    both = degrade(rgb, depth, beta, A, torch.ones(2), torch.zeros(2), torch.tensor([20.0, 70.0]), 6.0)
+    for i, angle in enumerate((20.0, 70.0)):
+        one = degrade(rgb[i:i + 1], depth[i:i + 1], beta[i:i + 1], A[i:i + 1], torch.ones(1), torch.zeros(1),
+                      angle, 6.0)
+        np.testing.assert_allclose(both[i].numpy(), one[0].numpy(), atol=1e-6)
 
 
 def test_blur_acts_on_the_direct_term_only():

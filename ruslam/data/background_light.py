@@ -9,13 +9,13 @@ reaches depth z in each Jerlov water type, as an sRGB camera white-balanced at t
 
     rgb_c(z) = sum_lambda S_c D65 exp(-Kd z) / sum_lambda S_c D65,   eta = rgb / max(rgb),   A = L * eta,
 
-with S_c D65 and Kd as in `ruslam.data.water` (jerlov), depths 2, 5 and 10 m (where a camera still sees in turbid
-coastal water) and L = 0.7. Ambient light at
-depth is what the water leaves of daylight, so this gives the blue of clear ocean, the green of coastal water
-and the yellow-green of turbid 9C without a hand-typed colour. It ignores the spectral shape of the scattering
-that turns this light towards the camera (bb/c), which in clear water makes the real veil bluer still. L = 0.7:
-auto-exposure puts the open-water background high in the range; eqs. 5-7 on all 23 EUVP samples in
-../shared/data (8 regions each, seed 0) give a median region L of 0.70.
+with S_c D65 and Kd as in `ruslam.data.water` (jerlov), depths 2, 5 and 10 m (where a camera still sees in
+turbid coastal water) and L = 0.7. Ambient light at depth is what the water leaves of daylight, so this gives
+the blue of clear ocean, the green of coastal water and the yellow-green of turbid 9C without a hand-typed
+colour. It ignores the spectral shape of the scattering that turns this light towards the camera (bb/c), which
+in clear water makes the real veil bluer still. L = 0.7: auto-exposure puts the open-water background high in
+the range; eqs. 5-7 on all 23 EUVP samples in ../shared/data (8 regions each, seed 0) give a median region L of
+0.70.
 """
 
 from __future__ import annotations

@@ -8,9 +8,10 @@ from `ruslam.data.background_light` (eqs. 5-7), beta from `ruslam.data.water` (J
 illumination is L * A; with L = 1, no blur and no noise eq. 4 is exactly eq. 1 with N = A R (eq. 3).
 
 - PSF: linear motion blur (kornia's `get_motion_kernel2d`, uniform weights, reflect border) applied to the
-  direct term only. A streak of length l pixels covers 2 round(l/2) + 1 pixel centres (kornia kernels are odd and
-  centred): 11 taps for the paper's 10 px; l < 1 means no blur. The kernel has few non-zero taps, so it is
-  applied as a sum of shifted copies, the same correlation as `kornia.filters.motion_blur` (tested), 10x faster.
+  direct term only. A streak of length l pixels covers 2 round(l/2) + 1 pixel centres (kornia kernels are odd
+  and centred): 11 taps for the paper's 10 px; a streak that rounds to one pixel (l <= 1) means no blur. The
+  kernel has few non-zero taps, so it is applied as a sum of shifted copies, the same correlation as
+  `kornia.filters.motion_blur` (tested) at a fraction of the cost.
 - W: zero-mean Gaussian noise, independent per pixel and channel, std ``noise_std`` (image units, [0, 1]).
 - Invalid depth (NaN, +-inf, <= 0): treated as infinitely far, t = 0, so the pixel is pure background light
   L A (plus noise). Kinect/NYU holes are mostly beyond range or on dark/specular surfaces, and "no object
@@ -38,10 +39,10 @@ from ruslam.data.water import WATER_TYPES, beta_rgb, check_water_type
 
 def motion_kernel(angle_deg: float, length: float) -> torch.Tensor | None:
     """kornia's uniform linear motion kernel [k,k] for a streak of ``length`` pixels, or None for no blur."""
-    if length < 1:
+    half = int(round(length / 2))
+    if half < 1:
         return None
-    size = 2 * int(round(length / 2)) + 1
-    return get_motion_kernel2d(size, float(angle_deg), 0.0)[0]
+    return get_motion_kernel2d(2 * half + 1, float(angle_deg), 0.0)[0]
 
 
 def correlate(x: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
@@ -107,8 +108,9 @@ def degrade(rgb: torch.Tensor, depth: torch.Tensor, beta: torch.Tensor, A: torch
         if kernel is not None:
             direct = correlate(direct, kernel.to(dev, dt))
     else:
-        direct = torch.cat([correlate(direct[i:i + 1], motion_kernel(a, blur_length).to(dev, dt))
-                            if blur_length >= 1 else direct[i:i + 1] for i, a in enumerate(angles)])
+        kernels = [motion_kernel(a, blur_length) for a in angles]
+        direct = torch.cat([direct[i:i + 1] if k is None else correlate(direct[i:i + 1], k.to(dev, dt))
+                            for i, k in enumerate(kernels)])
     out = direct.add_(t.neg_().add_(1).mul_(illumination))  # + L eta (1 - t), reusing t's memory
     if bool((noise_std > 0).any()):
         out.add_(_noise(out.shape, generator, dev, dt).mul_(noise_std[:, None, None, None]))
