@@ -67,3 +67,23 @@ def test_folder_with_fewer_images_than_asked(tmp_path):
                                "extractors=[orb]", f"out_dir={tmp_path / 'out'}"])
     with pytest.raises(ValueError, match=r"holds 2 image\(s\) .*fewer than the 30 asked"):
         run(cfg)
+
+
+def test_embedded_default_runs_tiny(tmp_path):
+    # the default dataset (procedural scenes made pseudo-underwater) at a tiny size, default extractor list:
+    # the ones not available here are skipped with a note, never an error
+    cfg = compose("evaluate", ["task=matching", "dataset.num_images=2", "dataset.render_size=[96,128]",
+                               f"out_dir={tmp_path}", *SMALL])
+    report = run(cfg)
+    assert report["pairs"] == 4 and {"sift", "orb"} <= set(report["results"])
+    assert set(report["results"]) | set(report["skipped"]) == set(cfg.extractors)
+    check_outputs(tmp_path, report, ["SIFT", "ORB"])
+    manifest = json.loads((tmp_path / "upatches" / "upatches.json").read_text())
+    assert manifest["source"] == "procedural" and "PseudoUnderwater" in manifest["degrade"]["_target_"]
+    # the images are the degraded ones: a second build without degradation differs
+    from ruslam.data.upatches import procedural_upatches
+
+    clean = procedural_upatches(tmp_path / "clean", num_images=1, render_size=(48, 64), size=(96, 128),
+                                eval_size=(96, 128), num_warps=1, degrade=None)
+    degraded = cv2.imread(str(tmp_path / "upatches" / "v_000" / "1.ppm"))
+    assert not np.array_equal(cv2.cvtColor(clean[0]["image1"], cv2.COLOR_RGB2BGR), degraded)
