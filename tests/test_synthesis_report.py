@@ -97,3 +97,27 @@ def test_select_indices_is_a_seeded_subset():
     picked = select_indices(1449, 200, 0)
     assert len(set(picked)) == 200 and picked == sorted(picked) and picked == select_indices(1449, 200, 0)
     assert picked != select_indices(1449, 200, 1)
+
+
+def test_nyu_config_reads_the_paper_split(tmp_path):
+    import h5py
+
+    rng = np.random.default_rng(0)
+    mat = tmp_path / "nyu.mat"
+    with h5py.File(mat, "w") as f:  # MATLAB layout: (N,3,W,H) and (N,W,H)
+        f["images"] = rng.integers(0, 256, (6, 3, 40, 30), dtype=np.uint8)
+        f["depths"] = (0.5 + 4 * rng.random((6, 40, 30))).astype(np.float32)
+    cfg = compose("evaluate", ["task=synthesis", "dataset=synthesis_nyu", f"dataset.path={mat}",
+                               "dataset.source.num_test=3", "dataset.height=24", "dataset.width=32",
+                               f"out_dir={tmp_path / 'run'}", "task.grid_rows=1"])
+    out = evaluate(cfg)
+    assert out["results"]["in_air"]["n"] == 3  # the test split, not all six
+    assert "NYU-Depth-v2 test split" in (tmp_path / "run" / "table.md").read_text()
+
+
+def test_rgbd_folder_config_on_real_nyu_samples(shared_data, tmp_path):
+    cfg = compose("evaluate", ["task=synthesis", "dataset=synthesis_rgbd",
+                               f"dataset.root={shared_data / 'rgbd' / 'nyu_samples'}", "dataset.height=60",
+                               "dataset.width=80", f"out_dir={tmp_path / 'run'}", "task.grid_rows=1"])
+    out = evaluate(cfg)
+    assert out["results"]["ours"]["n"] == 2
