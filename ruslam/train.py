@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytorch_lightning as pl
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
@@ -33,6 +34,8 @@ def format_report(before: dict, after: dict) -> str:
 def train(cfg: DictConfig) -> float | None:
     """Fit, report before/after held-out losses, export weights; returns the final held-out loss (for sweeps)."""
     pl.seed_everything(cfg.seed, workers=True)
+    if cfg.get("torch_threads"):
+        torch.set_num_threads(int(cfg.torch_threads))
     out_dir = Path(cfg.out_dir)
     datamodule = instantiate(cfg.datamodule, source=cfg.data, teacher=cfg.teacher)
     module = instantiate(cfg.model)

@@ -12,6 +12,7 @@ import hashlib
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytorch_lightning as pl
 import torch
@@ -66,26 +67,43 @@ class DistillationDataset(Dataset):
         return {"image": rgb, **targets}
 
 
-class _Preloaded:
-    """The source's samples kept in memory: procedural rendering then happens once, not every epoch."""
+class PreparedSource:
+    """The first `limit` samples of a source, resized to `size` (h, w), optionally kept in memory.
 
-    def __init__(self, source):
-        self.items = [source[i] for i in range(len(source))]
+    Training resolution is a property of the run, not of the source: the embedded default trains at 120x160 on
+    images the procedural source renders at 240x320; procedural rendering then happens once, not every epoch.
+    """
+
+    def __init__(self, source, limit: int | None = None, size: tuple[int, int] | None = None, preload: bool = True):
+        self.source, self.size = source, tuple(size) if size else None
+        self.length = min(len(source), limit) if limit else len(source)
+        self.items = [self._load(i) for i in range(self.length)] if preload else None
+
+    def _load(self, i: int) -> dict:
+        item = dict(self.source[i])
+        if self.size and tuple(item["image"].shape[:2]) != self.size:
+            h, w = self.size
+            item["image"] = cv2.resize(item["image"], (w, h), interpolation=cv2.INTER_AREA)
+            item["depth"] = cv2.resize(item["depth"], (w, h), interpolation=cv2.INTER_NEAREST)
+        return item
 
     def __len__(self) -> int:
-        return len(self.items)
+        return self.length
 
     def __getitem__(self, i: int) -> dict:
-        return self.items[i]
+        if not 0 <= i < self.length:
+            raise IndexError(f"index {i} out of range for {self.length} training images")
+        return self.items[i] if self.items is not None else self._load(i)
 
 
 class DistillationDataModule(pl.LightningDataModule):
     """Configs (not objects) for source/teacher/synthesis/augmentations, built lazily in each process."""
 
-    def __init__(self, source: dict, teacher: dict, cache_root: str = ".cache/ruslam/teacher", val_size: int = 32,
+    def __init__(self, source: dict, teacher: dict, cache_root: str = "~/.cache/ruslam/teacher", val_size: int = 32,
                  split_seed: int = 0, batch_size: int = 16, num_workers: int = 0, seed: int = 0, preload: bool = True,
+                 limit_images: int | None = None, image_size: tuple[int, int] | None = None,
                  synthesis: dict | None = None, photometric: dict | None = None, geometric: dict | None = None,
-                 teacher_batch_size: int = 8):
+                 teacher_batch_size: int = 8, val_overrides: dict | None = None):
         super().__init__()
         self.source_conf, self.teacher_conf = _plain(source), _plain(teacher)
         self.synthesis_conf, self.photometric_conf = _plain(synthesis), _plain(photometric)
@@ -93,23 +111,48 @@ class DistillationDataModule(pl.LightningDataModule):
         self.val_size, self.split_seed, self.batch_size = val_size, split_seed, batch_size
         self.num_workers, self.seed, self.preload = num_workers, seed, preload
         self.teacher_batch_size = teacher_batch_size
-        key = json.dumps({"source": self.source_conf, "teacher": self.teacher_conf}, sort_keys=True, default=str)
-        self.cache_dir = Path(cache_root) / hashlib.sha1(key.encode()).hexdigest()[:12]
+        # e.g. {split: test}: the held-out set is the source built with these options (NYU's 200 test images)
+        # instead of val_size images carved out of the training source.
+        self.val_overrides = _plain(val_overrides)
+        self.limit_images = limit_images
+        self.image_size = tuple(image_size) if image_size else None
+        if self.image_size and (len(self.image_size) != 2 or self.image_size[0] % 8 or self.image_size[1] % 8):
+            raise ValueError(f"image_size must be [height, width], multiples of 8; got {list(self.image_size)}.")
+        # Targets depend on the source and the resolution, not on how many images are used: a longer run with a
+        # larger limit_images reuses (and extends) the same cache.
+        self.cache_config = {"source": self.source_conf, "image_size": self.image_size}
+        key = json.dumps({**self.cache_config, "teacher": self.teacher_conf}, sort_keys=True, default=str)
+        self.cache_dir = Path(cache_root).expanduser() / hashlib.sha1(key.encode()).hexdigest()[:12]
         self.train_set: DistillationDataset | None = None
         self.val_set: DistillationDataset | None = None
+        self._source_cache = None
+        self._val_source_cache = None
 
     def _source(self):
-        source = instantiate(self.source_conf)
-        if len(source) <= self.val_size:
-            raise ValueError(f"The RGB-D source has {len(source)} images; it needs more than val_size={self.val_size}.")
-        return source
+        if self._source_cache is None:  # rendered/read once per process, shared by the teacher cache and training
+            source = PreparedSource(instantiate(self.source_conf), self.limit_images, self.image_size, self.preload)
+            if self.val_overrides is None and len(source) <= self.val_size:
+                raise ValueError(f"The RGB-D source gives {len(source)} images; it needs more than "
+                                 f"val_size={self.val_size}.")
+            self._source_cache = source
+        return self._source_cache
+
+    def _val_source(self):
+        if self.val_overrides is None:
+            return None
+        if self._val_source_cache is None:
+            conf = {**self.source_conf, **self.val_overrides}
+            self._val_source_cache = PreparedSource(instantiate(conf), None, self.image_size, self.preload)
+        return self._val_source_cache
 
     def prepare_data(self) -> None:
         from ruslam.data.teacher_cache import build_cache  # noqa: PLC0415 (teacher stack only when caching)
 
         teacher = instantiate(self.teacher_conf)
-        build_cache(self._source(), teacher, self.cache_dir, config={"source": self.source_conf},
-                    batch_size=self.teacher_batch_size)
+        for source in (self._source(), self._val_source()):
+            if source is not None:
+                build_cache(source, teacher, self.cache_dir, config=self.cache_config,
+                            batch_size=self.teacher_batch_size)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
@@ -120,16 +163,19 @@ class DistillationDataModule(pl.LightningDataModule):
         first = source[0]["image"]
         if first.shape[0] % 8 or first.shape[1] % 8:
             raise ValueError(f"Training images must have height and width multiples of 8, got {first.shape[:2]}.")
-        if self.preload:
-            source = _Preloaded(source)
         cache = TeacherCache(self.cache_dir)
-        order = np.random.default_rng(self.split_seed).permutation(len(source))
-        val_idx, train_idx = sorted(order[: self.val_size].tolist()), sorted(order[self.val_size:].tolist())
+        val_source = self._val_source()
+        if val_source is None:
+            order = np.random.default_rng(self.split_seed).permutation(len(source))
+            val_idx, train_idx = sorted(order[: self.val_size].tolist()), sorted(order[self.val_size:].tolist())
+            val_source = source
+        else:
+            val_idx, train_idx = list(range(len(val_source))), list(range(len(source)))
         synthesis, photometric = _build(self.synthesis_conf), _build(self.photometric_conf)
         geometric = _build(self.geometric_conf)
         self.train_set = DistillationDataset(source, train_idx, cache, synthesis, photometric, geometric, self.seed)
         # Held-out set: same degradations and warps, but fixed per image so epochs compare like with like.
-        self.val_set = DistillationDataset(source, val_idx, cache, synthesis, None, geometric, self.seed + 1,
+        self.val_set = DistillationDataset(val_source, val_idx, cache, synthesis, None, geometric, self.seed + 1,
                                            vary_per_epoch=False)
 
     def set_epoch(self, epoch: int) -> None:
