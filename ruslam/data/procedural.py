@@ -130,7 +130,8 @@ def render(scene: Scene, T_world_cam: np.ndarray, K: np.ndarray, height: int, wi
     Rb = _yaw_matrices(scene.box_yaw)
     radius = np.concatenate([np.linalg.norm(scene.box_half, axis=1), scene.sphere_radius])
     centre = np.concatenate([scene.box_center, scene.sphere_center])
-    t_all = np.full((n_box + n_sph, height, width), np.inf, np.float32)
+    t = np.full((height, width), np.inf, np.float32)  # nearest hit so far and its surface index
+    surface = np.zeros((height, width), np.int64)
     for k in range(n_box + n_sph):
         rows, cols = _screen_rect(R.T @ (centre[k] - o), radius[k], K, height, width)
         if rows.start >= rows.stop or cols.start >= cols.stop:
@@ -140,11 +141,14 @@ def render(scene: Scene, T_world_cam: np.ndarray, K: np.ndarray, height: int, wi
             d_loc = np.einsum("ji,jhw->ihw", Rb[k].astype(np.float32), dk)
             o_loc = (Rb[k].T @ (o - centre[k])).astype(np.float32)[:, None, None]
             half = scene.box_half[k].astype(np.float32)[:, None, None]
-            inv = 1.0 / np.where(np.abs(d_loc) < 1e-12, np.float32(1e-12), d_loc)
-            t1, t2 = (-half - o_loc) * inv, (half - o_loc) * inv
-            t_near, t_far = np.minimum(t1, t2).max(0), np.maximum(t1, t2).min(0)
-            tk = np.where(t_near > _EPS, t_near, np.where(t_far > _EPS, t_far, np.inf))
-            tk[t_near > t_far] = np.inf
+            d_loc[np.abs(d_loc) < 1e-12] = 1e-12  # axis-parallel rays: no division by zero, slab at infinity
+            inv = 1.0 / d_loc
+            if (np.abs(o_loc) < half).all():  # camera inside (the room): every ray exits through one face
+                tk = ((np.where(d_loc > 0, half, -half) - o_loc) * inv).min(0)
+            else:
+                t1, t2 = (-half - o_loc) * inv, (half - o_loc) * inv
+                t_near, t_far = np.minimum(t1, t2).max(0), np.maximum(t1, t2).min(0)
+                tk = np.where((t_near > _EPS) & (t_near <= t_far), t_near, np.inf)
         else:  # nearest root of |o + t d - c|^2 = r^2
             oc = (o - centre[k]).astype(np.float32)
             a = (dk * dk).sum(0)
@@ -152,56 +156,66 @@ def render(scene: Scene, T_world_cam: np.ndarray, K: np.ndarray, height: int, wi
             disc = b * b - a * np.float32(oc @ oc - radius[k] ** 2)
             tk = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
             tk[(disc < 0) | (tk <= _EPS)] = np.inf
-        t_all[k, rows, cols] = tk
-    t_all = t_all.reshape(n_box + n_sph, -1)
-    d = d.reshape(3, -1)
-    surface = np.argmin(t_all, axis=0)
-    t = t_all[surface, np.arange(surface.size)]
+        closer = tk < t[rows, cols]
+        t[rows, cols] = np.where(closer, tk, t[rows, cols])
+        surface[rows, cols][closer] = k
+    t, surface, d = t.ravel(), surface.ravel(), d.reshape(3, -1)
     hit = np.isfinite(t)
+    idx = slice(None) if hit.all() else np.flatnonzero(hit)
+    k, t_hit, d_hit = surface[idx], t[idx], d[:, idx]
+    n_hit = k.size
+
+    # Per-surface tables in float32, gathered per pixel by surface index k.
+    f32 = np.float32
+    cos_yaw, sin_yaw = np.cos(scene.box_yaw).astype(f32), np.sin(scene.box_yaw).astype(f32)
+    uv_cos = np.cos(scene.uv_angle).astype(f32)
+    uv_sin = np.sin(scene.uv_angle).astype(f32)
+    rho_k = scene.texel_density.astype(f32)
+    offset_k = scene.uv_offset.astype(f32)
 
     # Surface frame of every hit pixel, boxes and spheres each in one vectorised pass.
-    idx = np.flatnonzero(hit)
-    k = surface[idx]
-    rel = (o[:, None] + t[idx] * d[:, idx] - centre[k].T).astype(np.float32)
-    normal, tex = np.empty((3, idx.size), np.float32), np.empty(idx.size, np.int64)
-    su, sv = np.empty(idx.size, np.float32), np.empty(idx.size, np.float32)  # surface coordinates, metres
+    rel = o.astype(f32)[:, None] + t_hit * d_hit - centre.astype(f32)[k].T
+    normal, tex = np.empty((3, n_hit), f32), np.empty(n_hit, np.int64)
+    su, sv = np.empty(n_hit, f32), np.empty(n_hit, f32)  # surface coordinates, metres
     b = np.flatnonzero(k < n_box)
     kb = k[b]
-    c, s = np.cos(scene.box_yaw[kb]).astype(np.float32), np.sin(scene.box_yaw[kb]).astype(np.float32)
+    c, s = cos_yaw[kb], sin_yaw[kb]
     p = np.stack([c * rel[0, b] + s * rel[1, b], -s * rel[0, b] + c * rel[1, b], rel[2, b]])  # box frame
-    axis = np.argmax(np.abs(p) / scene.box_half[kb].T, axis=0)
+    axis = np.argmax(np.abs(p) * (1.0 / scene.box_half.astype(f32))[kb].T, axis=0)
     ar = np.arange(b.size)
     positive = p[axis, ar] > 0
-    sign = np.where(positive, 1.0, -1.0).astype(np.float32)
-    normal[0, b] = np.where(axis == 0, c, np.where(axis == 1, -s, 0.0)) * sign  # yaw applied to the face axis
-    normal[1, b] = np.where(axis == 0, s, np.where(axis == 1, c, 0.0)) * sign
+    sign = np.where(positive, f32(1), f32(-1))
+    zero = f32(0)
+    normal[0, b] = np.where(axis == 0, c, np.where(axis == 1, -s, zero)) * sign  # yaw applied to the face axis
+    normal[1, b] = np.where(axis == 0, s, np.where(axis == 1, c, zero)) * sign
     normal[2, b] = (axis == 2) * sign
     tex[b] = scene.box_texture[kb, axis * 2 + positive]
     su[b] = p[_U_AXIS[axis], ar]
-    sv[b] = p[_V_AXIS[axis], ar] * _V_SIGN[axis]
+    sv[b] = p[_V_AXIS[axis], ar] * _V_SIGN.astype(f32)[axis]
     q = np.flatnonzero(k >= n_box)
-    r = radius[k[q]].astype(np.float32)
-    p = rel[:, q] / r
-    normal[:, q] = p
-    tex[q] = scene.sphere_texture[k[q] - n_box]
-    su[q] = r * np.arctan2(p[1], p[0])
-    sv[q] = -r * np.arcsin(np.clip(p[2], -1.0, 1.0))
+    if q.size:
+        r = radius.astype(f32)[k[q]]
+        p = rel[:, q] / r
+        normal[:, q] = p
+        tex[q] = scene.sphere_texture[k[q] - n_box]
+        su[q] = r * np.arctan2(p[1], p[0])
+        sv[q] = -r * np.arcsin(np.clip(p[2], -1.0, 1.0))
 
     # Texture coordinates in level-0 texels; footprint = texels covered by one pixel (picks the mip level).
-    ca, sa = np.cos(scene.uv_angle[k]), np.sin(scene.uv_angle[k])
-    rho = scene.texel_density[k]
-    x = rho * (ca * su - sa * sv) + scene.uv_offset[k, 0]
-    y = rho * (sa * su + ca * sv) + scene.uv_offset[k, 1]
-    ray = d[:, idx] / np.linalg.norm(d[:, idx], axis=0)
-    cos_view = (normal * ray).sum(0)
-    n = normal * -np.sign(cos_view + 1e-12)  # two-sided: the normal faces the camera
-    footprint = rho * t[idx] / K[0, 0] / np.maximum(np.abs(cos_view), 0.25)
-    albedo = sample_textures(textures or texture_bank(0), tex[idx], x, y, footprint)
-    shade = scene.ambient + (1.0 - scene.ambient) * np.maximum(scene.light_dir.astype(np.float32) @ n, 0.0)
-
-    image = np.zeros((t.size, 3), np.float32)
-    image[idx] = np.clip(albedo * scene.tint[k] * shade[:, None], 0.0, 1.0)
-    depth = np.where(hit, t, np.nan).astype(np.float32)
+    ca, sa, rho = uv_cos[k], uv_sin[k], rho_k[k]
+    x = rho * (ca * su - sa * sv) + offset_k[k, 0]
+    y = rho * (sa * su + ca * sv) + offset_k[k, 1]
+    cos_view = (normal * d_hit).sum(0) / np.sqrt((d_hit * d_hit).sum(0))
+    footprint = rho * t_hit / f32(K[0, 0]) / np.maximum(np.abs(cos_view), f32(0.25))
+    albedo = sample_textures(textures or texture_bank(0), tex, x, y, footprint)
+    # Two-sided Lambertian: the normal is flipped to face the camera before lighting.
+    lit = np.maximum((scene.light_dir.astype(f32) @ normal) * -np.sign(cos_view + f32(1e-12)), zero)
+    shade = f32(scene.ambient) + f32(1.0 - scene.ambient) * lit
+    albedo *= scene.tint.astype(f32)[k]
+    albedo *= shade[:, None]
+    image = np.zeros((t.size, 3), f32)
+    image[idx] = np.clip(albedo, 0.0, 1.0, out=albedo)
+    depth = np.where(hit, t, np.nan).astype(f32)
     return image.reshape(height, width, 3), depth.reshape(height, width)
 
 

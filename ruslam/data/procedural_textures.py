@@ -195,6 +195,8 @@ def texture_bank(seed: int, count: int = 48, size: int = TEXTURE_SIZE) -> tuple[
 
     Cached per process, so every dataset with the same seed shares one bank (a DataLoader worker builds its own).
     """
+    if size < 8 or size & (size - 1):
+        raise ValueError(f"Texture size must be a power of two >= 8 (wrapping uses a bit mask), got {size}.")
     rng = np.random.default_rng([seed, 7919])
     bank = shipped_textures(size)[:count]
     while len(bank) < count:
@@ -216,20 +218,25 @@ def sample_textures(levels: tuple[np.ndarray, ...], tex: np.ndarray, x: np.ndarr
     """
     level = np.clip(np.round(np.log2(np.maximum(footprint, 1.0))), 0, len(levels) - 1).astype(np.int64)
     out = np.empty((len(x), 3), np.float32)
-    for lv in np.unique(level):
+    tex = tex.astype(np.int32)
+    for lv in np.flatnonzero(np.bincount(level, minlength=len(levels))):
         m = np.flatnonzero(level == lv)
         img = levels[lv]
-        s = img.shape[1]
+        s = img.shape[1]  # a power of two: wrapping is a bit mask
         flat = img.reshape(-1, 3)
-        xs = (x[m] / 2.0 ** lv - 0.5).astype(np.float32)
-        ys = (y[m] / 2.0 ** lv - 0.5).astype(np.float32)
+        xs = x[m].astype(np.float32) * np.float32(0.5 ** lv) - np.float32(0.5)
+        ys = y[m].astype(np.float32) * np.float32(0.5 ** lv) - np.float32(0.5)
         x0, y0 = np.floor(xs), np.floor(ys)
         fx, fy = (xs - x0)[:, None], (ys - y0)[:, None]
-        x0, y0 = x0.astype(np.int64) % s, y0.astype(np.int64) % s
-        x1, y1 = (x0 + 1) % s, (y0 + 1) % s
-        base = tex[m] * (s * s)
-        row0, row1 = base + y0 * s, base + y1 * s
-        top = flat.take(row0 + x0, 0) * (1 - fx) + flat.take(row0 + x1, 0) * fx
-        bottom = flat.take(row1 + x0, 0) * (1 - fx) + flat.take(row1 + x1, 0) * fx
-        out[m] = (top * (1 - fy) + bottom * fy) * np.float32(1 / 255.0)
+        x0, y0 = x0.astype(np.int32) & (s - 1), y0.astype(np.int32) & (s - 1)
+        x1, y1 = (x0 + 1) & (s - 1), (y0 + 1) & (s - 1)
+        row0 = tex[m] * (s * s) + y0 * s
+        row1 = row0 + (y1 - y0) * s
+        top = flat.take(row0 + x0, 0).astype(np.float32)
+        top += (flat.take(row0 + x1, 0) - top) * fx
+        bottom = flat.take(row1 + x0, 0).astype(np.float32)
+        bottom += (flat.take(row1 + x1, 0) - bottom) * fx
+        top += (bottom - top) * fy
+        top *= np.float32(1 / 255.0)
+        out[m] = top
     return out
