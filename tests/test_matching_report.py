@@ -87,3 +87,25 @@ def test_embedded_default_runs_tiny(tmp_path):
                                 eval_size=(96, 128), num_warps=1, degrade=None)
     degraded = cv2.imread(str(tmp_path / "upatches" / "v_000" / "1.ppm"))
     assert not np.array_equal(cv2.cvtColor(clean[0]["image1"], cv2.COLOR_RGB2BGR), degraded)
+
+
+def test_hpatches_config_reads_the_official_layout(tmp_path):
+    # one i_ and one v_ sequence of 3 images each at another size than the evaluation size; image k is image 1
+    # shifted by a known translation, so a correct pipeline (H direction, resize update) matches SIFT almost
+    # perfectly, and a wrong one cannot
+    rng = np.random.default_rng(0)
+    base = cv2.resize((rng.random((30, 40, 3)) * 255).astype(np.uint8), (200, 150), interpolation=cv2.INTER_CUBIC)
+    for seq in ("i_one", "v_two"):
+        folder = tmp_path / "hp" / seq
+        folder.mkdir(parents=True)
+        cv2.imwrite(str(folder / "1.ppm"), base)
+        for k, shift in ((2, (7.0, -4.0)), (3, (-12.0, 9.0))):
+            H = np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]])
+            warped = cv2.warpPerspective(base, H, (200, 150), borderMode=cv2.BORDER_REFLECT)
+            cv2.imwrite(str(folder / f"{k}.ppm"), warped)
+            np.savetxt(folder / f"H_1_{k}", H)
+    cfg = compose("evaluate", ["task=matching", "dataset=hpatches", f"dataset.root={tmp_path / 'hp'}",
+                               "dataset.size=[120,160]", "extractors=[sift]", f"out_dir={tmp_path / 'out'}"])
+    report = run(cfg)
+    assert report["pairs"] == 4 and report["results"]["sift"]["0-30°"]["pairs"] == 4
+    assert report["results"]["sift"]["overall"]["mma"] > 90
