@@ -20,7 +20,7 @@ _SHIFTS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 
 
 def _colour(rng: np.random.Generator) -> tuple[int, int, int]:
-    hsv = np.array([[[rng.integers(0, 180), rng.integers(40, 256), rng.integers(50, 256)]]], np.uint8)
+    hsv = np.array([[[rng.integers(0, 180), rng.integers(20, 200), rng.integers(50, 256)]]], np.uint8)
     return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0])
 
 
@@ -121,7 +121,8 @@ def blobs_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndar
     noise = (noise - noise.min()) / (noise.max() - noise.min())
     levels = int(rng.integers(4, 8))
     posterized = np.floor(noise * levels) / (levels - 1)
-    cmap = matplotlib.colormaps[str(rng.choice(["viridis", "terrain", "tab20", "Set3", "plasma", "cividis"]))]
+    names = ["viridis", "copper", "tab20", "Set3", "plasma", "coolwarm", "twilight"]
+    cmap = matplotlib.colormaps[str(rng.choice(names))]
     img = np.ascontiguousarray((cmap(np.clip(posterized, 0, 1))[..., :3] * 255).astype(np.uint8))
     _draw_shapes(img, rng, int(rng.integers(15, 40)), size / 8)
     return img
