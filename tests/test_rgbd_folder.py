@@ -147,3 +147,14 @@ def test_hydra_config_builds_the_reader(tmp_path):
     cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "data" / "rgbd_folder.yaml")
     ds = instantiate(cfg, root=str(tmp_path))
     assert isinstance(ds, RGBDFolder) and ds.depth_scale == 1000.0 and ds[0]["id"] == "1"
+
+
+def test_sample_validator_refuses_float_colour_outside_unit_range_and_keeps_the_callers_depth():
+    from ruslam.data.rgbd_sample import make_sample
+
+    with pytest.raises(ValueError, match="must lie in \\[0, 1\\], got values in \\[255, 255\\]"):
+        make_sample("x", np.full((H, W, 3), 255.0, np.float32), np.ones((H, W), np.float32))
+    depth = np.zeros((H, W), np.float32)
+    depth[0, 0] = 2.0
+    out = make_sample("x", np.zeros((H, W, 3), np.float32), depth)
+    assert np.isnan(out["depth"]).sum() == H * W - 1 and depth[1, 1] == 0.0  # input not modified

@@ -19,6 +19,9 @@ def make_sample(image_id: str, image: np.ndarray, depth: np.ndarray, source: str
     if image.dtype == np.uint8:
         image = image.astype(np.float32) / np.float32(255.0)
     elif np.issubdtype(image.dtype, np.floating):
+        if not (np.nanmin(image) >= -1e-3 and np.nanmax(image) <= 1.0 + 1e-3):
+            raise ValueError(f"Float colour image of sample {image_id!r}{where} must lie in [0, 1], got values in "
+                             f"[{np.nanmin(image):.3g}, {np.nanmax(image):.3g}].")
         image = np.clip(image.astype(np.float32), 0.0, 1.0)
     else:
         raise ValueError(f"Colour image of sample {image_id!r}{where} must be 8-bit RGB, got dtype {image.dtype}.")
