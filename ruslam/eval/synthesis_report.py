@@ -158,6 +158,15 @@ def _image(x: torch.Tensor) -> np.ndarray:
 
 
 def run(cfg: DictConfig) -> dict:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(int(cfg.task.get("torch_threads", 1)))
+    try:
+        return _run(cfg)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(cfg: DictConfig) -> dict:
     task, data = cfg.task, cfg.dataset
     height, width = int(data.height), int(data.width)
     out_dir = Path(cfg.out_dir)
