@@ -158,3 +158,24 @@ def test_sample_validator_refuses_float_colour_outside_unit_range_and_keeps_the_
     depth[0, 0] = 2.0
     out = make_sample("x", np.zeros((H, W, 3), np.float32), depth)
     assert np.isnan(out["depth"]).sum() == H * W - 1 and depth[1, 1] == 0.0  # input not modified
+
+
+def test_tum_layout_pairs_by_nearest_timestamp(tmp_path):
+    (tmp_path / "rgb").mkdir(), (tmp_path / "depth").mkdir()
+    for t_rgb, t_depth, metres in (("100.000", "100.011", 1.0), ("100.033", "100.040", 2.0), ("100.066", None, 0)):
+        _write_rgb(tmp_path / "rgb" / f"{t_rgb}.png", _colour())
+        if t_depth:
+            cv2.imwrite(str(tmp_path / "depth" / f"{t_depth}.png"), np.full((H, W), 5000 * metres, np.uint16))
+    cv2.imwrite(str(tmp_path / "depth" / "100.300.png"), np.full((H, W), 5000, np.uint16))  # too far from any rgb
+    with pytest.raises(ValueError, match="set max_time_diff"):
+        RGBDFolder(tmp_path, depth_scale=5000.0)
+    ds = RGBDFolder(tmp_path, depth_scale=5000.0, max_time_diff=0.02)
+    assert [ds[i]["id"] for i in range(len(ds))] == ["100.000", "100.033"]  # 100.066 has no depth within 20 ms
+    assert ds[0]["depth"][0, 0] == pytest.approx(1.0) and ds[1]["depth"][0, 0] == pytest.approx(2.0)
+
+
+def test_time_association_needs_timestamp_names(tmp_path):
+    _write_rgb(tmp_path / "img_a.png", _colour())
+    np.save(tmp_path / "depth_a.npy", np.ones((H, W), np.float32))
+    with pytest.raises(ValueError, match="timestamps in seconds"):
+        RGBDFolder(tmp_path, max_time_diff=0.02)

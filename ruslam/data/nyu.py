@@ -22,6 +22,7 @@ import numpy as np
 from ruslam.data.rgbd_sample import make_sample
 
 SPLITS = ("train", "test", "all")
+NYU_LABELED_URL = "http://horatio.cs.nyu.edu/mit/silberman/nyu_depth_v2/nyu_depth_v2_labeled.mat"
 
 
 def split_indices(num_images: int, split: str, num_test: int = 200, split_seed: int = 0) -> np.ndarray:
@@ -51,8 +52,8 @@ class NYUDepthV2:
     @staticmethod
     def _check_file(path: Path) -> int:
         if not path.is_file():
-            raise FileNotFoundError(f"NYU-Depth-v2 file {path} does not exist; download nyu_depth_v2_labeled.mat "
-                                    f"from the NYU-Depth-v2 website and pass its path.")
+            raise FileNotFoundError(f"NYU-Depth-v2 file {path} does not exist; download {NYU_LABELED_URL} "
+                                    f"(2.8 GB) and pass its path.")
         if not h5py.is_hdf5(path):
             raise ValueError(f"{path} is not an HDF5 file; expected the MATLAB v7.3 nyu_depth_v2_labeled.mat.")
         with h5py.File(path, "r") as f:

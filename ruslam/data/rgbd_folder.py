@@ -9,8 +9,8 @@ Two layouts are recognised:
 
 Depth encodings: integer images (16-bit PNG/PGM/TIFF) are divided by ``depth_scale`` (1000 = millimetres as in
 slambook/Redwood, 5000 for TUM); ``.npy``, ``.csv`` and float TIFFs are metres.  0, negative, NaN and inf become
-NaN (`make_sample`).  TUM-style folders whose colour and depth stamps differ need an association file first;
-this reader pairs equal keys only.  Ids are the pairing keys.
+NaN (`make_sample`).  TUM folders (``rgb/`` + ``depth/`` named by timestamps that differ slightly) pair by
+nearest timestamp with ``max_time_diff=0.02`` (the rule of TUM's ``associate.py``).  Ids are the colour keys.
 """
 
 from __future__ import annotations
@@ -38,8 +38,36 @@ def _natural(key: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", key)]
 
 
-def find_pairs(root: Path) -> list[tuple[str, Path, Path]]:
-    """(key, colour path, depth path) of every pair in ``root``; unpaired files are an error."""
+def associate_by_time(colours: dict[str, Path], depths: dict[str, Path], max_time_diff: float,
+                      root: Path) -> list[tuple[str, Path, Path]]:
+    """TUM ``associate.py`` rule: keys are timestamps (s); candidate pairs closer than ``max_time_diff`` are
+    matched greedily, closest first, each file used once; colour frames left without depth are dropped."""
+    try:
+        tc = {k: float(k) for k in colours}
+        td = {k: float(k) for k in depths}
+    except ValueError:
+        raise ValueError(f"RGB-D folder {root}: max_time_diff needs file names that are timestamps in seconds "
+                         f"(e.g. 1305031102.175304.png); got names like {next(iter(colours))!r}.") from None
+    d_keys = sorted(td, key=td.get)
+    d_times = np.array([td[k] for k in d_keys])
+    candidates = []  # only depth stamps inside each colour stamp's window: linear in the sequence length
+    for a, t in tc.items():
+        lo, hi = np.searchsorted(d_times, [t - max_time_diff, t + max_time_diff])
+        gaps = np.abs(t - d_times[lo:hi])
+        candidates += [(g, a, d_keys[lo + j]) for j, g in enumerate(gaps) if g < max_time_diff]
+    candidates.sort()
+    used_c, used_d, pairs = set(), set(), []
+    for _, a, b in candidates:
+        if a not in used_c and b not in used_d:
+            used_c.add(a), used_d.add(b), pairs.append((a, colours[a], depths[b]))
+    if not pairs:
+        raise ValueError(f"RGB-D folder {root}: no colour/depth timestamps within {max_time_diff} s of each other.")
+    return sorted(pairs, key=lambda p: tc[p[0]])
+
+
+def find_pairs(root: Path, max_time_diff: float | None = None) -> list[tuple[str, Path, Path]]:
+    """(key, colour path, depth path) of every pair in ``root``; unpaired files are an error unless pairing is
+    by nearest timestamp (``max_time_diff`` seconds, TUM style)."""
     colour_dir = next((root / d for d in COLOUR_DIRS if (root / d).is_dir()), None)
     if colour_dir is not None and (root / "depth").is_dir():
         colours = {p.stem: p for p in _files(colour_dir, COLOUR_SUFFIXES)}
@@ -52,11 +80,14 @@ def find_pairs(root: Path) -> list[tuple[str, Path, Path]]:
     if not colours and not depths:
         raise ValueError(f"RGB-D folder {root} holds no colour/depth pairs; expected color/ + depth/ sub-folders "
                          f"or files like img1.jpg + depth1.png.")
+    if max_time_diff is not None and colours and depths:
+        return associate_by_time(colours, depths, max_time_diff, root)
     unpaired = sorted(str(p) for k, p in colours.items() if k not in depths)
     unpaired += sorted(str(p) for k, p in depths.items() if k not in colours)
     if unpaired:
         raise ValueError(f"RGB-D folder {root} has {len(unpaired)} file(s) without a colour/depth partner, "
-                         f"e.g. {unpaired[0]}; every colour image needs a depth file with the same key.")
+                         f"e.g. {unpaired[0]}; every colour image needs a depth file with the same key "
+                         f"(TUM-style timestamps: set max_time_diff).")
     return [(k, colours[k], depths[k]) for k in sorted(colours, key=_natural)]
 
 
@@ -101,14 +132,16 @@ def read_depth(path: Path, depth_scale: float) -> np.ndarray:
 class RGBDFolder:
     """Map-style RGB-D dataset over a folder; ``ds[i]`` -> ``{"id", "image", "depth"}`` in key order."""
 
-    def __init__(self, root: str | Path, depth_scale: float = 1000.0):
+    def __init__(self, root: str | Path, depth_scale: float = 1000.0, max_time_diff: float | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
             raise FileNotFoundError(f"RGB-D folder {self.root} does not exist.")
         if not depth_scale > 0:
             raise ValueError(f"depth_scale must be positive (1000 for millimetres, 5000 for TUM), got {depth_scale}.")
         self.depth_scale = float(depth_scale)
-        self.pairs = find_pairs(self.root)
+        if max_time_diff is not None and not max_time_diff > 0:
+            raise ValueError(f"max_time_diff must be positive seconds (TUM uses 0.02), got {max_time_diff}.")
+        self.pairs = find_pairs(self.root, max_time_diff)
 
     def __len__(self) -> int:
         return len(self.pairs)
