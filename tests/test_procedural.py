@@ -20,7 +20,7 @@ def _scene(boxes=(), spheres=(), room=((0.0, 0.0, 0.0), (3.0, 50.0, 50.0))) -> S
     nb, ns = len(centres), len(spheres)
     return Scene(
         box_center=np.array(centres, float), box_half=np.array(halves, float), box_yaw=np.zeros(nb),
-        box_inside=np.arange(nb) == 0, box_texture=np.zeros((nb, 6), int),
+        box_texture=np.zeros((nb, 6), int),
         sphere_center=np.array([s[0] for s in spheres], float).reshape(ns, 3),
         sphere_radius=np.array([s[1] for s in spheres], float), sphere_texture=np.zeros(ns, int),
         texel_density=np.full(nb + ns, 100.0), uv_angle=np.zeros(nb + ns), uv_offset=np.zeros((nb + ns, 2)),
