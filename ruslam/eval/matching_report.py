@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import torch
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -159,6 +160,17 @@ def csv_table(summary: dict, labels: dict, skipped: dict, bins, thresholds) -> s
 
 
 def run(cfg: DictConfig) -> dict:
+    """Table 2 on ``cfg.dataset`` for ``cfg.extractors``; torch runs with ``task.torch_threads`` during the run."""
+    threads = torch.get_num_threads()
+    if cfg.task.get("torch_threads"):
+        torch.set_num_threads(int(cfg.task.torch_threads))
+    try:
+        return _run(cfg)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(cfg: DictConfig) -> dict:
     task, out_dir = cfg.task, Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     names = list(cfg.extractors)
