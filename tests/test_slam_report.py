@@ -122,3 +122,25 @@ def test_missing_dataset_names_what_to_download(tmp_path):
 
     with pytest.raises(FileNotFoundError, match=r"EuRoC.*MH_01_easy.*asl.ethz.ch"):
         run(cfg, slam_run=fake_slam)
+
+
+def test_euroc_layout_is_table3_with_se3_alignment(tmp_path):
+    """A tiny stereo sequence in the EuRoC layout under dataset.root: one APE column per method, SE3 (no scale)."""
+    from ruslam.eval.slam_report import run
+    from ruslam.slam.synthetic_sequence import synthetic_sequence
+
+    seq = synthetic_sequence("clear", stereo=True, cache_dir=tmp_path / "cache", num_frames=10, width=160,
+                             height=120, focal=112.5, texture_res=512, height_res=300, progress=False)
+    root = tmp_path / "euroc"
+    root.mkdir()
+    (root / "MH_01_easy").symlink_to(seq.image_paths[0][0].parents[3])
+    cfg = compose("evaluate", ["task=slam", "dataset=euroc", f"dataset.root={root}", f"out_dir={tmp_path / 'out'}",
+                               "extractors=[orb]", "dataset.select=[MH01]"])
+    out = run(cfg, slam_run=fake_slam)
+    result = out["results"][0]
+    assert result["ok"] and result["ape"] > 0.5  # the fake's 0.5 scale survives SE3 alignment
+    assert "| Sequence | ORB |" in out["table"] and "| MH01 |" in out["table"] and "MH02" not in out["table"]
+    with pytest.raises(ValueError, match="unknown sequence"):
+        run(compose("evaluate", ["task=slam", "dataset=euroc", f"dataset.root={root}", "dataset.select=[MH9]",
+                                 f"out_dir={tmp_path / 'out'}"]),
+            slam_run=fake_slam)

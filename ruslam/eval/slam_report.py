@@ -250,6 +250,12 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     labels = dict(task.get("labels") or {})
     sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
     sequences = sequences if isinstance(sequences, dict) else {str(s): str(s) for s in sequences}
+    select = dataset.get("select")
+    if select:  # dataset.select=[MH01,MH03]: a subset, in the given order
+        unknown = [str(s) for s in select if str(s) not in sequences]
+        if unknown:
+            raise ValueError(f"dataset.select names unknown sequence(s) {unknown}; expected some of {list(sequences)}.")
+        sequences = {str(s): sequences[str(s)] for s in select}
     opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
     extractors, skipped = resolve_extractors(list(cfg.extractors), task)
     methods = list(extractors)
