@@ -77,7 +77,7 @@ def main() -> None:
                 "XFeat teacher (dense, 1/8)": seconds_per_call(teacher.local, tensors),
                 "SuperPoint architecture (dense, random weights)": seconds_per_call(superpoint, tensors[:3]),
                 "XFeat + VLAD teacher (cached targets)": seconds_per_call(teacher, tensors),
-                'load_extractor("xfeat").extract (2k sparse)': seconds_per_call(xfeat_sparse.extract, arrays),
+                'load_extractor("xfeat").extract (2k sparse + global)': seconds_per_call(xfeat_sparse.extract, arrays),
             }
         recompute = rows["XFeat + VLAD teacher (cached targets)"]
 
