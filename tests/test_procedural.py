@@ -56,6 +56,48 @@ def test_box_and_sphere_depths_at_the_image_centre():
     assert render(sphere, pose, K, 61, 81)[1][30, 40] == pytest.approx(3.0 - 0.7, abs=1e-4)
 
 
+def _with_field(grid: np.ndarray) -> Scene:
+    """A floor (far walls) with one height-field patch x in [0.5, 5.5], y in [-2.5, 2.5]."""
+    scene = _scene(room=((0.0, 0.0, 25.0), (50.0, 50.0, 25.0)))
+    scene.field_center, scene.field_half = np.array([[3.0, 0.0]]), np.array([[2.5, 2.5]])
+    scene.field_heights, scene.field_texture = grid[None], np.zeros(1, int)
+    for name in ("texel_density", "uv_angle", "uv_offset", "tint"):
+        setattr(scene, name, np.concatenate([getattr(scene, name), getattr(scene, name)[:1]]))
+    return scene
+
+
+def test_height_field_ramp_depth_matches_the_analytic_intersection():
+    K = intrinsics(H, W)
+    x0, slope = 0.5, 0.2  # height 0.2 * (x - 0.5) over the patch: linear, so bilinear is exact
+    scene = _with_field(np.repeat((slope * np.linspace(0.0, 5.0, 17))[None], 17, axis=0))
+    pose = look_pose([0.0, 0.0, 2.0], 0.0, np.radians(-30.0))
+    image, depth = render(scene, pose, K, H, W)
+    v, u = np.mgrid[0:H, 0:W]
+    d = pose[:3, :3] @ np.stack([(u.ravel() - K[0, 2]) / K[0, 0], (v.ravel() - K[1, 2]) / K[1, 1], np.ones(u.size)])
+    t = (2.0 + slope * x0) / (slope * d[0] - d[2])  # o_z + t d_z = slope (o_x + t d_x - x0), o = (0, 0, 2)
+    x, y = t * d[0], t * d[1]
+    on_ramp = (x > 0.7) & (x < 5.3) & (np.abs(y) < 2.3) & (t > 0)
+    assert on_ramp.sum() > 0.2 * H * W
+    np.testing.assert_allclose(depth.ravel()[on_ramp], t[on_ramp], atol=1e-3)  # sub-millimetre (float32)
+    assert np.isfinite(image).all()
+
+
+def test_bumpy_height_field_hits_lie_on_the_interpolated_surface():
+    from scipy.interpolate import RegularGridInterpolator
+
+    u = np.sin(np.linspace(0, np.pi, 17))
+    grid = 0.6 * np.random.default_rng(0).random((17, 17)) * np.outer(u, u)  # zero at the patch edges
+    K, pose = intrinsics(H, W), look_pose([-0.5, 0.3, 1.5], 0.0, np.radians(-35.0))
+    _, depth = render(_with_field(grid), pose, K, H, W)
+    v, uu = np.mgrid[0:H, 0:W]
+    pts = pose[:3, :3] @ (np.linalg.inv(K) @ np.stack([uu.ravel(), v.ravel(), np.ones(uu.size)])
+                          * depth.ravel()) + pose[:3, 3:]
+    surface = RegularGridInterpolator((np.linspace(-2.5, 2.5, 17), np.linspace(0.5, 5.5, 17)), grid)  # (y, x)
+    on_patch = (pts[0] > 0.5) & (pts[0] < 5.5) & (np.abs(pts[1]) < 2.5) & (pts[2] > 0.01)
+    assert on_patch.sum() > 0.1 * H * W
+    np.testing.assert_allclose(pts[2, on_patch], surface(pts[[1, 0]][:, on_patch].T), atol=2e-3)
+
+
 def test_rays_that_hit_nothing_get_nan_depth_and_black_pixels():
     K = intrinsics(H, W)
     scene = _scene(room=((5.0, 0.0, 1.0), (0.5, 0.5, 0.5)), spheres=[((5.0, 2.0, 1.0), 0.5)])  # no enclosing room
