@@ -15,7 +15,7 @@ from ruslam.slam.synthetic_sequence import (
     synthetic_sequence,
 )
 
-TINY = dict(num_frames=12, width=160, height=120, focal=112.5, texture_res=1024, height_res=400)
+TINY = dict(num_frames=12, width=160, height=120, focal=112.5, texture_res=512, height_res=300)
 
 
 @pytest.fixture(scope="module")
