@@ -45,16 +45,16 @@ def tiny_teacher(delay=0.0):
 
 
 class Images:
-    def __init__(self, n=10, broken=()):
-        self.n, self.broken = n, set(broken)
+    def __init__(self, n=10, broken=(), start=0):
+        self.n, self.broken, self.start = n, set(broken), start
 
     def __len__(self):
         return self.n
 
     def __getitem__(self, i):
-        rng = np.random.default_rng(i)
+        rng = np.random.default_rng(self.start + i)
         image = None if i in self.broken else rng.random((32, 48, 3)).astype(np.float32)
-        return {"id": f"seq/{i:03d}", "image": image}
+        return {"id": f"seq/{self.start + i:03d}", "image": image}
 '''
 
 CHILD_MAIN = '''
@@ -124,6 +124,9 @@ def test_rerun_skips_cached_ids_and_extends(fx, tmp_path):
     assert len(cache) == 8
     calls_without_codebook_fit = more.local.calls
     assert calls_without_codebook_fit == 3  # the codebook beside the cache is reused, only 3 new images run
+    other = fx["tiny_teacher"]()  # fewer images than cached, but other ids: they are computed, not skipped
+    cache = build_cache(fx["Images"](3, start=20), other, tmp_path)
+    assert other.local.calls == 3 and len(cache) == 11 and "seq/022" in cache
 
 
 def test_other_teacher_configuration_is_refused(fx, tmp_path):

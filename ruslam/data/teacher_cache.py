@@ -213,25 +213,33 @@ class CacheWriter(BasePredictionWriter):
         self.discard()
 
 
-class _CacheInputs(Dataset):
-    """The images still missing from the cache, as tensors; ids already cached come back as skip markers."""
+def _load_item(dataset, i: int) -> dict:
+    try:
+        return dataset[i]
+    except Exception as err:  # noqa: BLE001 (any reader failure is reported with the index)
+        reason = f"{type(err).__name__}: {err}"
+        raise TeacherCacheError(f"Image {i} of the dataset could not be read ({reason}).") from None
 
-    def __init__(self, dataset, done: set[str]):
-        self.dataset, self.done = dataset, done
+
+def missing_indices(dataset, done: set[str]) -> list[int]:
+    """Indices whose id is not cached yet (ids from ``dataset.image_id(i)`` when offered, else from the items)."""
+    image_id = getattr(dataset, "image_id", None)
+    ids = (image_id(i) if image_id else _load_item(dataset, i)["id"] for i in range(len(dataset)))
+    return [i for i, name in enumerate(ids) if group_name(str(name)) not in done]
+
+
+class _CacheInputs(Dataset):
+    """The images still missing from the cache, as tensors [3, H, W]."""
+
+    def __init__(self, dataset, indices: list[int]):
+        self.dataset, self.indices = dataset, indices
 
     def __len__(self) -> int:
-        return len(self.dataset)
+        return len(self.indices)
 
-    def __getitem__(self, i: int) -> dict:
-        try:
-            item = self.dataset[i]
-        except Exception as err:  # noqa: BLE001 (any reader failure is reported with the index)
-            reason = f"{type(err).__name__}: {err}"
-            raise TeacherCacheError(f"Image {i} of the dataset could not be read ({reason}).") from None
-        image_id = str(item["id"])
-        if group_name(image_id) in self.done:
-            return {"id": image_id}
-        image = item.get("image")
+    def __getitem__(self, k: int) -> dict:
+        item = _load_item(self.dataset, self.indices[k])
+        image_id, image = str(item["id"]), item.get("image")
         if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or not np.isfinite(image).all():
             shape = getattr(image, "shape", type(image).__name__)
             raise TeacherCacheError(f"Image {image_id!r} is unreadable: expected a finite HxWx3 array, got {shape}.")
@@ -239,13 +247,10 @@ class _CacheInputs(Dataset):
 
 
 def _collate(items: list[dict]) -> dict:
-    todo = [it for it in items if "image" in it]
-    if not todo:
-        return {"ids": [], "image": None}
-    shapes = {tuple(it["image"].shape) for it in todo}
+    shapes = {tuple(it["image"].shape) for it in items}
     if len(shapes) > 1:
         raise TeacherCacheError(f"Images of one batch have different sizes {sorted(shapes)}; use batch_size=1.")
-    return {"ids": [it["id"] for it in todo], "image": torch.stack([it["image"] for it in todo])}
+    return {"ids": [it["id"] for it in items], "image": torch.stack([it["image"] for it in items])}
 
 
 class _TeacherPredictor(pl.LightningModule):
@@ -254,8 +259,6 @@ class _TeacherPredictor(pl.LightningModule):
         self.teacher = teacher
 
     def predict_step(self, batch, batch_idx):
-        if not batch["ids"]:
-            return None
         out = self.teacher(batch["image"])
         return {"ids": batch["ids"], **{k: v.detach().float().cpu() for k, v in out.items()}}
 
@@ -298,10 +301,10 @@ def build_cache(
     if manifest is None:
         write_manifest(cache_dir, {"fingerprint": fingerprint, "config": config or {}, "float16": float16})
     remove_orphan_shards(cache_dir)
-    done = cached_names(cache_dir)
-    if len(done) < len(dataset):
+    missing = missing_indices(dataset, cached_names(cache_dir))
+    if missing:
         writer = CacheWriter(cache_dir, fingerprint, float16, compression, commit_every)
-        loader = DataLoader(_CacheInputs(dataset, done), batch_size=batch_size, num_workers=num_workers,
+        loader = DataLoader(_CacheInputs(dataset, missing), batch_size=batch_size, num_workers=num_workers,
                             collate_fn=_collate, shuffle=False)
         trainer = pl.Trainer(accelerator=accelerator, devices=devices, strategy=strategy, callbacks=[writer],
                              logger=False, enable_checkpointing=False, enable_progress_bar=False,
