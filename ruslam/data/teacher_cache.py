@@ -7,7 +7,7 @@ Layout of ``cache_dir``:
 - ``shard-rank<r>-<uuid>.h5``: committed shards (``libver="latest"``), one group per image id (``/`` escaped
   as ``%2F``), one chunked, compressed dataset per key (``keypoint_logits`` [65, h, w], ``dense_descriptors`` [D, h, w],
   ``global_descriptor`` [G]), optionally float16; the fingerprint is also in each shard's attributes.
-- ``.tmp-<pid>-<uuid>.h5``: the shard a running process is filling. It is closed and renamed to ``shard-*``
+- ``.tmp-<host>-<pid>-<uuid>.h5``: the shard a running process is filling. It is closed and renamed to ``shard-*``
   every `commit_every` images (an atomic rename), so a killed run loses at most its last uncommitted images and
   never leaves a group that reads back wrong; the next run deletes the orphan and recomputes the missing ids.
 
@@ -19,6 +19,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import socket
 import uuid
 from pathlib import Path
 from urllib.parse import quote
@@ -132,10 +133,12 @@ def _pid_alive(pid: int) -> bool:
 
 
 def remove_orphan_shards(cache_dir: Path) -> None:
-    """Delete temp shards of processes that died (their images are recomputed)."""
+    """Delete temp shards of this host's processes that died (their images are recomputed)."""
     for tmp in cache_dir.glob(".tmp-*.h5"):
-        pid = tmp.name.split("-")[1]
-        if not pid.isdigit() or not _pid_alive(int(pid)):
+        parts = tmp.name[len(".tmp-") : -len(".h5")].rsplit("-", 2)  # host, pid, uuid
+        if len(parts) != 3 or parts[0] != socket.gethostname() or not parts[1].isdigit():
+            continue  # another host's process (shared file system) or not ours: left alone
+        if not _pid_alive(int(parts[1])):
             tmp.unlink(missing_ok=True)
 
 
@@ -162,7 +165,7 @@ class CacheWriter(BasePredictionWriter):
 
     def _open(self) -> h5py.File:
         if self._file is None:
-            self._tmp = self.cache_dir / f".tmp-{os.getpid()}-{uuid.uuid4().hex}.h5"
+            self._tmp = self.cache_dir / f".tmp-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}.h5"
             self._file = h5py.File(self._tmp, "w", libver="latest")
             self._file.attrs["teacher_fingerprint"] = self.fingerprint
             self._count = 0
