@@ -58,10 +58,10 @@ class KeyFrameDatabase:
         return self._n
 
     def add(self, kf: KeyFrame) -> None:
-        v = np.asarray(kf.global_descriptor, np.float32).ravel()
+        v = np.asarray(kf.global_descriptor, np.float64).ravel()
         v = v / max(float(np.linalg.norm(v)), 1e-12)
         if self.vectors is None:
-            self.vectors = np.zeros((64, len(v)), np.float32)
+            self.vectors = np.zeros((64, len(v)))  # float64: 1 - sqrt(2 - 2 a.b) is ill-conditioned near a = b
         if self._n == len(self.vectors):
             self.vectors = np.concatenate([self.vectors, np.zeros_like(self.vectors)])
         self.vectors[self._n] = v
@@ -72,7 +72,7 @@ class KeyFrameDatabase:
         """Eq. 9 for every stored keyframe: 1 - ||a - b|| with a, b unit vectors, via one matrix product."""
         if self._n == 0:
             return np.zeros(0, np.float32)
-        q = np.asarray(descriptor, np.float32).ravel()
+        q = np.asarray(descriptor, np.float64).ravel()
         q = q / max(float(np.linalg.norm(q)), 1e-12)
         dots = self.vectors[: self._n] @ q
         return 1.0 - np.sqrt(np.maximum(2.0 - 2.0 * dots, 0.0))

@@ -34,8 +34,9 @@ class TrackingConfig:
     init_max_frames: int = 20  # restart initialisation from a newer frame after this many failures
     init_min_parallax_deg: float = 1.0
     min_keypoints: int = 50  # fewer (black / featureless frame): skip the frame
-    kf_max_frames: int = 10  # insert a keyframe at least this often (frames) ...
-    kf_min_frames: int = 1  # ... and at most this often
+    kf_max_frames: int = 10  # a keyframe is due after this many frames (if tracking has weakened at all) ...
+    kf_min_frames: int = 3  # ... and allowed after this many, like ORB-SLAM's "mapping is idle" (see _need_keyframe)
+    kf_urgent_ratio: float = 0.5  # below this share of the reference's points a keyframe is inserted at once
     kf_ratio_mono: float = 0.9  # tracked points / reference keyframe points below which a keyframe is needed
     kf_ratio_stereo: float = 0.75
     stereo_close_baselines: float = 40.0  # stereo points closer than this many baselines count as "close"
@@ -164,9 +165,10 @@ class Tracker:
             p.position = x
         for o in np.nonzero(~inl)[0]:
             k, p = kfs[oi[o]], points[oj[o]]
-            k.points[p.observations.pop(k)] = None
-            if len(p.observations) < 2:
-                self.map.remove_point(p)
+            if k in p.observations:
+                k.points[p.observations.pop(k)] = None
+                if len(p.observations) < 2:
+                    self.map.remove_point(p)
 
     def _reset(self) -> None:
         for kf in list(self.map.keyframes):
@@ -299,8 +301,6 @@ class Tracker:
     def _need_keyframe(self, frame: Frame) -> bool:
         c = self.cfg
         since = frame.index - self.last_kf_index
-        if since < c.kf_min_frames:
-            return False
         min_obs = 2 if len(self.map.keyframes) <= 2 else 3
         ref_points = sum(1 for p in self.reference.points if p is not None and len(p.observations) >= min_obs)
         tracked = sum(p is not None for p in frame.points)
@@ -311,7 +311,11 @@ class Tracker:
             has = np.array([p is not None for p in frame.points])
             need_close = np.sum(close & has) < 100 and np.sum(close & ~has) > 70
         weak = tracked < ratio * ref_points or need_close
-        return bool((since >= c.kf_max_frames or self.mapper.idle()) and weak and tracked > 15)
+        # ORB-SLAM inserts when local mapping is idle; run inline, mapping is always idle and every frame would
+        # become a keyframe, so "idle" also needs kf_min_frames since the last one (or very weak tracking)
+        allowed = since >= c.kf_max_frames or (self.mapper.idle() and since >= c.kf_min_frames)
+        urgent = tracked < c.kf_urgent_ratio * ref_points
+        return bool((allowed and weak or urgent) and tracked > 15)
 
     def _insert_keyframe(self, frame: Frame) -> None:
         kf = KeyFrame(frame)

@@ -1,0 +1,98 @@
+"""Loop closing: eq. 9 scores, retrieval, temporal consistency; the full loop on a drifting sequence (slow)."""
+
+import numpy as np
+
+from ruslam.slam.loop_closing import KeyFrameDatabase, LoopCloser, LoopConfig
+from ruslam.slam.map import Frame, KeyFrame, Map
+
+K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
+
+
+def keyframe(g, index=0):
+    f = Frame(index=index, timestamp=float(index), keypoints=np.zeros((0, 2)), descriptors=np.zeros((0, 8), np.float32),
+              K=K, image_size=(640, 480), global_descriptor=np.asarray(g, np.float32), T_cw=np.eye(4))
+    return KeyFrame(f)
+
+
+def test_eq9_scores_match_the_definition():
+    rng = np.random.default_rng(0)
+    vectors = rng.normal(size=(20, 4096)) * rng.uniform(0.5, 3.0, (20, 1))  # unnormalised on purpose
+    db = KeyFrameDatabase()
+    for v in vectors:
+        db.add(keyframe(v))
+    q = rng.normal(size=4096)
+    unit = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    expected = 1.0 - np.linalg.norm(unit - q / np.linalg.norm(q), axis=1)
+    assert np.allclose(db.scores(q), expected, atol=1e-5)
+    assert np.isclose(db.scores(vectors[3] * 7.0)[3], 1.0, atol=1e-5)  # same direction: distance 0
+    e = np.zeros(4096)
+    e[0] = 1.0
+    db2 = KeyFrameDatabase()
+    db2.add(keyframe(np.eye(4096)[1]))
+    assert np.isclose(db2.scores(e)[0], 1.0 - np.sqrt(2.0), atol=1e-6)  # orthogonal unit vectors
+
+
+def test_query_ranks_and_excludes():
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=64)
+    db = KeyFrameDatabase()
+    kfs = [keyframe(base + rng.normal(0, s, 64), i) for i, s in enumerate([0.1, 0.5, 1.0, 2.0, 4.0])]
+    for k in kfs:
+        db.add(k)
+    assert db.query(base, k=3) == kfs[:3]
+    kfs[0].is_bad = True
+    assert db.query(base, k=2, exclude={kfs[1]}) == kfs[2:4]
+    scores = db.scores(base)
+    assert db.query(base, k=5, min_score=float(scores[2]) + 1e-6) == [kfs[1]]
+
+
+def _loop_closer(consistency=3):
+    cfg = LoopConfig(min_keyframes=0, exclude_recent=0, consistency=consistency, min_score=0.0)
+    return LoopCloser(Map(), None, cfg, binary=False, stereo=False)
+
+
+def test_candidate_needs_consecutive_consistent_detections():
+    rng = np.random.default_rng(2)
+    lc = _loop_closer()
+    place = rng.normal(size=256)
+    old = [keyframe(place + rng.normal(0, 0.2, 256), i) for i in range(3)]  # an old, mutually covisible group
+    others = [keyframe(rng.normal(size=256), 10 + i) for i in range(5)]
+    for k in old + others:
+        lc.map.add_keyframe(k)
+        lc.database.add(k)
+    for a in old:
+        for b in old:
+            if a is not b:
+                lc.map.covisibility[a][b] = 50
+    found = []
+    for i in range(4):  # four new keyframes back at the old place, not covisible with it
+        q = keyframe(place + rng.normal(0, 0.2, 256), 100 + i)
+        lc.map.add_keyframe(q)
+        found.append(lc._detect(q))
+    assert found[0] == [] and found[1] == []  # first and second sightings: not yet consistent
+    assert found[2] and found[2][0] in old and found[3]
+    # detections that jump between unrelated places never become consistent
+    lc2 = _loop_closer()
+    places = [rng.normal(size=256) for _ in range(4)]
+    for p in places:
+        k = keyframe(p)
+        lc2.map.add_keyframe(k)
+        lc2.database.add(k)
+    for p in places:
+        q = keyframe(p + rng.normal(0, 0.1, 256))
+        lc2.map.add_keyframe(q)
+        assert lc2._detect(q) == []
+
+
+def test_covisible_neighbours_are_not_loop_candidates():
+    rng = np.random.default_rng(3)
+    lc = _loop_closer(consistency=1)
+    place = rng.normal(size=128)
+    a, b = keyframe(place), keyframe(place + rng.normal(0, 0.05, 128))
+    for k in (a, b):
+        lc.map.add_keyframe(k)
+    lc.database.add(a)
+    lc.map.covisibility[a][b] = lc.map.covisibility[b][a] = 40
+    assert lc._detect(b) == []
+    del lc.map.covisibility[a][b], lc.map.covisibility[b][a]
+    assert lc._detect(b) == [a]
