@@ -180,7 +180,7 @@ def test_orb_corners_are_repeatable_under_camera_jitter():
         inside = (uv >= 0).all(1) & (uv[:, 0] < 320) & (uv[:, 1] < 240)
         nearest = np.linalg.norm(uv[inside, None] - kb[None], axis=2).min(1)
         rates.append((nearest < 2.0).mean())
-    assert min(rates) > 0.6, rates  # measured ~0.84 on average; random points score ~0.03
+    assert min(rates) > 0.6, rates  # measured 0.80 mean over 16 scenes; random points score 0.03
 
 
 def test_intrinsics_follow_the_documented_field_of_view_and_centre():
