@@ -100,3 +100,12 @@ def test_two_process_cpu_ddp(tmp_path, cache_root):
     assert done.returncode == 0, done.stderr[-3000:]
     assert "trained" in done.stdout
     assert (tmp_path / "checkpoints" / "last.ckpt").is_file()
+
+
+def test_slurm_launcher_config_composes():
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = hydra_compose("train", ["hydra/launcher=submitit_slurm", "out_dir=x"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith("SlurmLauncher") and cfg.hydra.launcher.timeout_min == 1440
