@@ -109,3 +109,23 @@ def test_hpatches_config_reads_the_official_layout(tmp_path):
     report = run(cfg)
     assert report["pairs"] == 4 and report["results"]["sift"]["0-30°"]["pairs"] == 4
     assert report["results"]["sift"]["overall"]["mma"] > 90
+
+
+def test_weights_file_extractor_is_evaluated(tmp_path):
+    # task.weights.<name> = a UWNet weights file -> that network is evaluated under its label (untrained here:
+    # only the plumbing is checked, not its accuracy)
+    import torch
+
+    from ruslam.models.export import export_weights
+    from ruslam.models.uwnet import UWNet
+
+    torch.manual_seed(0)
+    weights = export_weights(UWNet(attention=False, deformable=False), tmp_path / "no_am_dcn.pt")
+    src = write_images(tmp_path / "src", 1)
+    cfg = compose("evaluate", ["task=matching", "dataset=upatches", f"dataset.root={src}", "dataset.num_images=1",
+                               "extractors=[uwnet_no_am_dcn]", f"task.weights.uwnet_no_am_dcn={weights}",
+                               f"out_dir={tmp_path / 'out'}", *SMALL])
+    report = run(cfg)
+    assert set(report["results"]) == {"uwnet_no_am_dcn"} and not report["skipped"]
+    assert report["results"]["uwnet_no_am_dcn"]["overall"]["pairs"] == 2
+    assert "| UWNet w/o AM-DCN |" in (tmp_path / "out" / "table.md").read_text()
