@@ -109,3 +109,13 @@ def test_slurm_launcher_config_composes():
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = hydra_compose("train", ["hydra/launcher=submitit_slurm", "out_dir=x"], return_hydra_config=True)
     assert cfg.hydra.launcher._target_.endswith("SlurmLauncher") and cfg.hydra.launcher.timeout_min == 1440
+
+
+@pytest.mark.parametrize(("logger", "cls"), [("csv", "CSVLogger"), ("tensorboard", "TensorBoardLogger"),
+                                             ("wandb", "WandbLogger")])
+def test_logger_configs_build_offline(tmp_path, logger, cls):
+    cfg = compose("train", [f"logger={logger}", f"out_dir={tmp_path}"])
+    (built,) = [instantiate(c) for c in cfg.logger.values()]
+    assert type(built).__name__ == cls
+    if logger == "wandb":
+        assert cfg.logger.wandb.offline is True
