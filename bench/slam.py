@@ -1,6 +1,6 @@
 """SLAM throughput at 640x480 on 2 threads, synchronous mode (mapping and loop closing inline), XFeat and ORB.
 
-    nice .venv/bin/python bench/slam.py [--frames 200] [--level clear] [--extractors xfeat orb] [--stereo]
+    nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo]
 
 For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
 SLAM figure is frames / (sum of per-frame times: extraction + tracking + inline mapping + loop closing), so the
@@ -27,7 +27,7 @@ from ruslam.slam.synthetic_sequence import synthetic_sequence
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--frames", type=int, default=100, help="first frames of the 200-frame sequence")
     parser.add_argument("--level", default="clear")
     parser.add_argument("--extractors", nargs="+", default=["xfeat", "orb"])
     parser.add_argument("--stereo", action="store_true")
@@ -35,10 +35,10 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
-    seq = synthetic_sequence(args.level, stereo=args.stereo, num_frames=args.frames, seed=0, progress=False)
-    n = len(seq)
+    seq = synthetic_sequence(args.level, stereo=args.stereo, num_frames=200, seed=0, progress=False)
+    n = min(args.frames, len(seq))
     images = [seq.load(i) for i in range(n)]
-    gt = seq.groundtruth
+    gt = Trajectory(seq.groundtruth.timestamps[:n], seq.groundtruth.poses[:n])
     print(f"sequence {seq.name}: {n} frames {seq.cameras[0].width}x{seq.cameras[0].height}, "
           f"{'stereo' if args.stereo else 'mono'}, path {gt.path_length():.2f} m, torch threads {args.threads}")
     print(f"{'extractor':10s} {'extract fps':>11s} {'SLAM fps':>9s} {'ratio':>6s} {'tracked':>8s} {'kfs':>4s} "
@@ -51,7 +51,7 @@ def main() -> None:
             for image in frame:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
-        result = run(seq, extractor, SLAMConfig(progress=False, synchronous=True))
+        result = run(seq, extractor, SLAMConfig(progress=False, synchronous=True, max_frames=n))
         slam_fps = n / float(result.timings.sum())
         ape = float("nan")
         if len(result) >= 3:

@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class MappingConfig:
     max_distance_binary: float = 64.0
-    max_distance_float: float = 1.0
+    max_distance_float: float = 0.7
     ratio: float = 0.8
     triangulation_neighbours: int = 10
     epipolar_px: float = 4.0
@@ -41,7 +41,7 @@ class MappingConfig:
     fuse_radius: float = 3.0
     ba_keyframes: int = 7  # optimised keyframes (the new one and its best covisible neighbours)
     ba_fixed_keyframes: int = 5  # other keyframes seeing local points, held fixed
-    ba_iterations: tuple[int, int] = (4, 6)  # LM iterations before / after dropping outlier observations
+    ba_iterations: tuple[int, int] = (3, 4)  # LM iterations before / after dropping outlier observations
     redundancy: float = 0.9  # cull a keyframe when this share of its points is seen by >= 3 others
     min_found_ratio: float = 0.25  # cull a new point matched in fewer than this share of frames that could see it
 

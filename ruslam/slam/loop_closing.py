@@ -35,7 +35,7 @@ class LoopConfig:
     min_keyframes: int = 10  # no detection in a map smaller than this
     exclude_recent: int = 10  # never match one of the last keyframes (they are odometry, not loops)
     max_distance_binary: float = 64.0
-    max_distance_float: float = 1.0
+    max_distance_float: float = 0.7
     ratio: float = 0.8
     min_matches: int = 20  # descriptor matches before Sim3 RANSAC
     min_inliers: int = 20

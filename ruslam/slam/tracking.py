@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class TrackingConfig:
     max_distance_binary: float = 64.0  # Hamming bits (of 256) for ORB
-    max_distance_float: float = 1.0  # L2 between unit descriptors (0..2)
+    max_distance_float: float = 0.7  # L2 between unit descriptors (0..2); XFeat: correct 0.2-0.46, wrong 0.3-0.5
     ratio: float = 0.8  # kNN ratio test
     window_ratio: float = 0.9  # ratio test inside a search window
     window_radius: float = 15.0  # px, constant-velocity search (doubled on failure)
