@@ -96,3 +96,76 @@ def test_covisible_neighbours_are_not_loop_candidates():
     assert lc._detect(b) == []
     del lc.map.covisibility[a][b], lc.map.covisibility[b][a]
     assert lc._detect(b) == [a]
+
+
+def _observing_keyframe(T_true, T_est, landmarks, descriptors, points, index, rng):
+    """A keyframe at true pose T_true (its pixels), estimated pose T_est, observing `points` (one per landmark)."""
+    from ruslam.slam.geometry import project
+
+    uv, z = project(K, T_true, landmarks)
+    vis = np.nonzero((z > 0) & (uv[:, 0] > 0) & (uv[:, 1] > 0) & (uv[:, 0] < 639) & (uv[:, 1] < 479))[0]
+    f = Frame(index=index, timestamp=float(index), keypoints=uv[vis] + rng.normal(0, 0.3, (len(vis), 2)),
+              descriptors=descriptors[vis], K=K, image_size=(640, 480),
+              global_descriptor=np.ones(8, np.float32), T_cw=T_est)
+    kf = KeyFrame(f)
+    for i, l in enumerate(vis):
+        points[l].add_observation(kf, i)
+    return kf
+
+
+def test_loop_correction_removes_drift_and_fuses_duplicates():
+    from ruslam.slam.geometry import pose_matrix
+    from ruslam.slam.local_mapping import LocalMapper, MappingConfig
+    from ruslam.slam.loop_closing import _rigid
+    from ruslam.slam.map import MapPoint, inverse_pose
+    from ruslam.slam.optimization import se3_exp
+
+    rng = np.random.default_rng(4)
+    landmarks = np.c_[rng.uniform(-2, 2, (400, 2)), rng.uniform(-0.2, 0.2, 400)]
+    desc = rng.normal(size=(400, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    down = np.diag([1.0, -1.0, -1.0])  # camera looking down from 2 m
+
+    def T_true(x):
+        return inverse_pose(pose_matrix(down, [x, 0.0, 2.0]))
+
+    # the current (second-pass) keyframes live in a drifted map: similarity D (scale 1.08, 4 deg, 0.25 m)
+    D = pose_matrix(se3_exp(np.array([0, 0, np.deg2rad(4), 0, 0, 0]))[:3, :3], [0.25, -0.1, 0.05], s=1.08)
+    m = Map()
+    lc = LoopCloser(m, None, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
+    mapper = LocalMapper(m, MappingConfig(), binary=False, loop_closer=lc)
+    lc.mapper = mapper
+    placeholder = keyframe(np.ones(8))  # points need a creator; the real one is set below
+    old_pts = [MapPoint(x, d, placeholder) for x, d in zip(landmarks, desc, strict=True)]
+    new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, placeholder) for x, d in zip(landmarks, desc, strict=True)]
+    old = [_observing_keyframe(T_true(x), T_true(x), landmarks, desc, old_pts, i, rng)
+           for i, x in enumerate([-0.3, 0.0, 0.3])]
+    new = [_observing_keyframe(T_true(x), _rigid(T_true(x) @ inverse_pose(D)), landmarks, desc, new_pts, 10 + i, rng)
+           for i, x in enumerate([-0.2, 0.1, 0.4])]
+    for p in old_pts + new_pts:
+        if p.observations:
+            p.reference = next(iter(p.observations))
+            m.add_point(p)
+    chain = old + new
+    for k in chain:
+        m.add_keyframe(k)
+    for a, b in zip(chain[:-1], chain[1:], strict=True):
+        b.parent = a  # odometry: the new keyframes hang off the old ones through a drifted edge
+    for group in (old, new):
+        for k in group:
+            m.update_connections(k)
+
+    def centre_error(kfs):
+        return max(np.linalg.norm(inverse_pose(k.T_cw)[:3, 3] - inverse_pose(T_true(x))[:3, 3])
+                   for k, x in zip(kfs, [-0.2, 0.1, 0.4], strict=True))
+
+    before = centre_error(new)
+    found = lc._verify(new[-1], old[1])
+    assert found is not None
+    S12, loop_points = found
+    lc._correct(new[-1], old[1], S12, loop_points)
+    assert before > 0.2 and centre_error(new) < 0.1 * before
+    assert lc.loops == [(new[-1].index, old[1].index)]
+    # duplicates were fused: the new keyframes now observe the old points
+    seen = {p for k in new for p in k.points if p is not None}
+    assert len(seen & set(old_pts)) > 0.8 * len(seen)
