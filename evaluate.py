@@ -3,12 +3,13 @@
 import hydra
 from omegaconf import DictConfig
 
+from ruslam.cli import run_cli
 from ruslam.evaluate import evaluate
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
+    run_cli(evaluate, cfg)
 
 
 if __name__ == "__main__":

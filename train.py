@@ -2,12 +2,14 @@
 
 import hydra
 from omegaconf import DictConfig
+
+from ruslam.cli import run_cli
 from ruslam.train import train
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float | None:
-    return train(cfg)
+    return run_cli(train, cfg)
 
 
 if __name__ == "__main__":
