@@ -51,7 +51,7 @@ def test_correlate_equals_kornia_motion_blur():
     x = torch.rand(2, 3, 30, 40)
     for angle, length in ((20.0, 10.0), (-65.0, 7.0), (90.0, 4.0)):
         k = motion_kernel(angle, length)
-        assert k.shape[-1] == 2 * round(length / 2) + 1 and abs(float(k.sum()) - 1) < 1e-6
+        assert k.shape[-1] == 2 * int(length // 2) + 1 and abs(float(k.sum()) - 1) < 1e-6
         np.testing.assert_allclose(correlate(x, k).numpy(), motion_blur(x, k.shape[-1], angle, 0.0).numpy(),
                                    atol=1e-6)
     assert motion_kernel(20.0, 0.5) is None and motion_kernel(20.0, 1.0) is None
@@ -173,3 +173,10 @@ def test_pseudo_underwater_bad_input():
     rgb, depth, _, _ = _batch()
     with pytest.raises(ValueError, match="Got 1 indices for a batch of 2"):
         PseudoUnderwater()(rgb, depth, [0])
+
+
+def test_streak_of_l_pixels_covers_the_nearest_odd_tap_count():
+    from ruslam.data.synthesis import motion_kernel
+
+    sizes = {length: motion_kernel(20.0, length).shape[-1] for length in (2, 3, 4, 5, 7, 10)}
+    assert sizes == {2: 3, 3: 3, 4: 5, 5: 5, 7: 7, 10: 11}

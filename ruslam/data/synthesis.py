@@ -8,7 +8,7 @@ from `ruslam.data.background_light` (eqs. 5-7), beta from `ruslam.data.water` (J
 illumination is L * A; with L = 1, no blur and no noise eq. 4 is exactly eq. 1 with N = A R (eq. 3).
 
 - PSF: linear motion blur (kornia's `get_motion_kernel2d`, uniform weights, reflect border) applied to the
-  direct term only. A streak of length l pixels covers 2 round(l/2) + 1 pixel centres (kornia kernels are odd
+  direct term only. A streak of length l pixels covers 2 floor(l/2) + 1 pixel centres (kornia kernels are odd
   and centred): 11 taps for the paper's 10 px; a streak that rounds to one pixel (l <= 1) means no blur. The
   kernel has few non-zero taps, so it is applied as a sum of shifted copies, the same correlation as
   `kornia.filters.motion_blur` (tested) at a fraction of the cost.
@@ -39,7 +39,7 @@ from ruslam.data.water import WATER_TYPES, beta_rgb, check_water_type
 
 def motion_kernel(angle_deg: float, length: float) -> torch.Tensor | None:
     """kornia's uniform linear motion kernel [k,k] for a streak of ``length`` pixels, or None for no blur."""
-    half = int(round(length / 2))
+    half = int(length // 2)  # the odd tap count nearest l (even l rounds up); round() made 3 px = 5 px
     if half < 1:
         return None
     return get_motion_kernel2d(2 * half + 1, float(angle_deg), 0.0)[0]
