@@ -110,3 +110,13 @@ def test_onnx_export_matches_pytorch_under_onnxruntime(tmp_path, weights):
     outs = session.run(list(ONNX_OUTPUTS), {"image": x.numpy()})
     for name, value in zip(ONNX_OUTPUTS, outs, strict=True):
         np.testing.assert_allclose(value, ref[name].numpy(), atol=1e-4, rtol=1e-3)
+
+
+def test_shipped_checkpoint_loads_by_name_and_is_small_fp16():
+    from ruslam.models.uwnet_extractor import SHIPPED_WEIGHTS
+
+    assert SHIPPED_WEIGHTS.stat().st_size <= 10 * 1024 * 1024
+    raw = torch.load(SHIPPED_WEIGHTS, weights_only=True)
+    assert all(v.dtype == torch.float16 for v in raw["state_dict"].values() if v.is_floating_point())
+    out = load_extractor("uwnet_xfeat").extract(np.zeros((120, 160, 3), np.uint8) + 128)
+    assert out["global_descriptor"].shape == (4096,) and out["descriptors"].shape[1] == 64
