@@ -1,6 +1,6 @@
 """SLAM throughput at 640x480 on 2 threads, synchronous mode (mapping and loop closing inline), XFeat and ORB.
 
-    nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo]
+    nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo] [--no-loop]
 
 For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
 SLAM figure is frames / (sum of per-frame times: extraction + tracking + inline mapping + loop closing), so the
@@ -21,6 +21,7 @@ import torch
 from ruslam import load_extractor
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import SLAMConfig, run
+from ruslam.slam.loop_closing import LoopConfig
 from ruslam.slam.readers import Trajectory
 from ruslam.slam.synthetic_sequence import synthetic_sequence
 
@@ -32,6 +33,7 @@ def main() -> None:
     parser.add_argument("--extractors", nargs="+", default=["xfeat", "orb"])
     parser.add_argument("--stereo", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--no-loop", action="store_true", help="disable loop closing (APE with vs without)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
@@ -51,7 +53,8 @@ def main() -> None:
             for image in frame:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
-        result = run(seq, extractor, SLAMConfig(progress=False, synchronous=True, max_frames=n))
+        cfg = SLAMConfig(progress=False, synchronous=True, max_frames=n, loop=LoopConfig(enabled=not args.no_loop))
+        result = run(seq, extractor, cfg)
         slam_fps = n / float(result.timings.sum())
         ape = float("nan")
         if len(result) >= 3:
