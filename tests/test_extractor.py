@@ -63,3 +63,12 @@ def test_bad_inputs_are_named():
         load_extractor("orb").extract(np.zeros((32, 32, 4), np.uint8))
     with pytest.raises(ValueError, match="unknown option"):
         load_extractor("orb", nfeatures=3)
+
+
+def test_separable_nms_equals_the_square_window_max():
+    scores = torch.rand(2, 37, 53, generator=torch.Generator().manual_seed(1))
+    scores[0, 10:14, 20:24] = 0.999  # plateaus keep every tied maximum, as the square window does
+    for radius in (1, 2, 4):
+        square = torch.nn.functional.max_pool2d(scores[:, None], 2 * radius + 1, stride=1, padding=radius)[:, 0]
+        expected = torch.where(scores == square, scores, torch.zeros_like(scores))
+        assert torch.equal(simple_nms(scores, radius), expected)

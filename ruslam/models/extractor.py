@@ -96,7 +96,10 @@ def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     """Keep only local maxima within a (2r+1)^2 window: scores [B, H, W] -> same with non-maxima zeroed."""
     if radius <= 0:
         return scores
-    pooled = F.max_pool2d(scores[:, None], kernel_size=2 * radius + 1, stride=1, padding=radius)[:, 0]
+    # max over a square window is separable: a row pass then a column pass (same result, ~2x cheaper at 9x9)
+    k = 2 * radius + 1
+    rows = F.max_pool2d(scores[:, None], kernel_size=(1, k), stride=1, padding=(0, radius))
+    pooled = F.max_pool2d(rows, kernel_size=(k, 1), stride=1, padding=(radius, 0))[:, 0]
     return torch.where(scores == pooled, scores, torch.zeros_like(scores))
 
 
