@@ -34,6 +34,7 @@ def main() -> None:
     parser.add_argument("--stereo", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-loop", action="store_true", help="disable loop closing (APE with vs without)")
+    parser.add_argument("--max-keypoints", type=int, default=None, help="extractor keypoint cap (default: its own)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
@@ -46,7 +47,8 @@ def main() -> None:
     print(f"{'extractor':10s} {'extract fps':>11s} {'SLAM fps':>9s} {'ratio':>6s} {'tracked':>8s} {'kfs':>4s} "
           f"{'loops':>5s} {'APE m':>7s} {'APE %path':>9s}")
     for name in args.extractors:
-        extractor = load_extractor(name)
+        extractor = load_extractor(name, **({} if args.max_keypoints is None else
+                                            {"max_keypoints": args.max_keypoints}))
         extractor.extract(images[0][0])  # warm-up
         start = time.perf_counter()
         for frame in images:

@@ -134,3 +134,26 @@ def test_window_search_respects_radius_and_uniqueness():
     # two points with the same descriptor compete for one keypoint: only one gets it
     ip, ik = match_in_windows(np.stack([kp[0], kp[0] + 1]), desc[[0, 0]], kp, desc, 8.0, False, 0.3)
     assert len(np.unique(ik)) == len(ik) == 1
+
+
+def test_map_point_descriptor_is_the_least_median_distance_one_and_follows_observations():
+    from ruslam.slam.map import KeyFrame, MapPoint
+
+    descs = np.array([[0.0, 0.0], [1.0, 0.0], [1.1, 0.0], [5.0, 0.0]], np.float32)
+    kfs = []
+    for d in descs:
+        kf = KeyFrame.__new__(KeyFrame)  # only what update_descriptor reads: id, descriptors, points
+        kf.id, kf.descriptors, kf.points = len(kfs) + 1000, d[None], [None]
+        kfs.append(kf)
+    p = MapPoint(np.zeros(3), descs[0], kfs[0])
+    for kf in kfs[:3]:
+        p.add_observation(kf, 0)
+    p.update_descriptor(binary=False)
+    # lower median of each row (self-distance 0 included): [0,0] -> 1, [1,0] -> 0.1, [1.1,0] -> 0.1; first tie wins
+    assert np.array_equal(p.descriptor, descs[1])
+    p.observations.pop(kfs[0])
+    p.observations.pop(kfs[1])
+    p.add_observation(kfs[3], 0)
+    p.add_observation(kfs[0], 0)  # same count as before, other members {1.1, 5, 0}: lower medians 1.1, 3.9, 1.1
+    p.update_descriptor(binary=False)
+    assert np.array_equal(p.descriptor, descs[2])

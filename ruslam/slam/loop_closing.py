@@ -198,7 +198,7 @@ class LoopCloser:
         cand.loop_edges.add(kf)
         self._optimize_essential_graph(kf, cand, before, corrected, corrected_by, new_links)
         for p in self.map.points:
-            p.update_normal()
+            p.update_normal(force=True)
         if self.cfg.global_bundle_adjustment:
             kfs = [k for k in self.map.keyframes if not k.is_bad]
             fixed = np.zeros(len(kfs), bool)

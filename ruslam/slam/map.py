@@ -130,6 +130,7 @@ class MapPoint:
         self.found = 1  # frames where it was matched
         self.first_kf_id = reference.id
         self.replaced_by: MapPoint | None = None
+        self._normal_key = self._descriptor_key = None  # what the cached normal/descriptor were computed from
 
     def __hash__(self) -> int:
         return self.id
@@ -138,10 +139,18 @@ class MapPoint:
         self.observations[kf] = index
         kf.points[index] = self
 
-    def update_normal(self) -> None:
-        """Mean viewing direction over the observing keyframes (for the viewing-angle test of the search)."""
+    def update_normal(self, force: bool = False) -> None:
+        """Mean viewing direction over the observing keyframes (for the viewing-angle test of the search).
+
+        Recomputed when the observing keyframes change (or `force`, after a loop correction moved the point); the
+        small moves of a local BA do not matter to a 60-degree viewing-angle test.
+        """
         if not self.observations:
             return
+        key = tuple(kf.id for kf in self.observations)
+        if key == self._normal_key and not force:  # called for every point of every keyframe; most are unchanged
+            return
+        self._normal_key = key
         centres = np.array([kf.center for kf in self.observations])
         d = self.position - centres
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
@@ -150,12 +159,16 @@ class MapPoint:
 
     def update_descriptor(self, binary: bool) -> None:
         """The observation descriptor with the least median distance to the others (ORB-SLAM's choice)."""
+        key = tuple((kf.id, i) for kf, i in self.observations.items())
+        if key == self._descriptor_key:
+            return
+        self._descriptor_key = key
         descs = np.stack([kf.descriptors[i] for kf, i in self.observations.items()])
         if len(descs) < 3:
             self.descriptor = descs[-1] if len(descs) else self.descriptor
             return
-        d = descriptor_distances(descs, descs, binary)
-        self.descriptor = descs[int(np.argmin(np.median(d, axis=1)))]
+        d = np.sort(descriptor_distances(descs, descs, binary), axis=1)
+        self.descriptor = descs[int(np.argmin(d[:, (len(descs) - 1) // 2]))]  # lower median, as ORB-SLAM
 
 
 class Map:
