@@ -144,3 +144,25 @@ def test_euroc_layout_is_table3_with_se3_alignment(tmp_path):
         run(compose("evaluate", ["task=slam", "dataset=euroc", f"dataset.root={root}", "dataset.select=[MH9]",
                                  f"out_dir={tmp_path / 'out'}"]),
             slam_run=fake_slam)
+
+
+def test_dataset_bound_and_common_extractor_options(tmp_path):
+    """The synthetic dataset's 0.5 m bound fails a run that strays 2 m; every extractor gets the SLAM's keypoint cap."""
+    from ruslam.eval.slam_report import run
+
+    seen = {}
+
+    def strays(sequence, extractor, cfg):
+        seen[type(extractor).__name__] = extractor.conf["max_keypoints"]
+        est = fake_slam(sequence, extractor, cfg)
+        est.poses = est.poses.copy()
+        est.poses[len(est.poses) // 2, :3, 3] += 2.0  # one pose 2 m off, in the estimate's (half) scale
+        return est
+
+    out = run(_tiny_cfg(tmp_path, "[orb]"), slam_run=strays)
+    assert not out["results"][0]["ok"] and "diverged" in out["results"][0]["reason"]
+    assert seen == {"ORB": 1000}
+    cfg = _tiny_cfg(tmp_path, "[orb]")
+    cfg.dataset.failure.bound_margin_m = 5.0
+    cfg.task.extractor_options = {"orb": {"max_keypoints": 500}}
+    assert run(cfg, slam_run=strays)["results"][0]["ok"] and seen == {"ORB": 500}

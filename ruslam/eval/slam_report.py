@@ -259,6 +259,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
     extractors, skipped = resolve_extractors(list(cfg.extractors), task)
     methods = list(extractors)
+    rule = OmegaConf.merge(task.failure, dataset.get("failure") or {})  # a dataset may rescale the bound
     results, curves = [], {}
     for name, seq in opened.items():
         seq.name = name
@@ -272,7 +273,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
             if len(estimate.timestamps):
                 write_tum_trajectory(_mkdir(out_dir / "trajectories" / name) / f"{method}.txt",
                                      Trajectory(estimate.timestamps, estimate.poses))
-            result, curve = evaluate_run(seq, estimate, method, dataset.alignment, task.failure, task.rpe_delta)
+            result, curve = evaluate_run(seq, estimate, method, dataset.alignment, rule, task.rpe_delta)
             results.append(result)
             curves.setdefault(name, {})[method] = curve
             print(f"[slam] {name} / {method}: " + (f"APE {result.ape:.3f} m, RPE {result.rpe:.3f} m" if result.ok
