@@ -34,6 +34,7 @@ def main() -> None:
     parser.add_argument("--stereo", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-loop", action="store_true", help="disable loop closing (APE with vs without)")
+    parser.add_argument("--global-ba", action="store_true", help="full-map BA after a loop correction")
     parser.add_argument("--max-keypoints", type=int, default=None, help="extractor keypoint cap (default: its own)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -55,7 +56,8 @@ def main() -> None:
             for image in frame:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
-        cfg = SLAMConfig(progress=False, synchronous=True, max_frames=n, loop=LoopConfig(enabled=not args.no_loop))
+        cfg = SLAMConfig(progress=False, synchronous=True, max_frames=n, loop=LoopConfig(enabled=not args.no_loop,
+                                                                                   global_bundle_adjustment=args.global_ba))
         result = run(seq, extractor, cfg)
         slam_fps = n / float(result.timings.sum())
         ape = float("nan")

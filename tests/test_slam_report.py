@@ -147,7 +147,7 @@ def test_euroc_layout_is_table3_with_se3_alignment(tmp_path):
 
 
 def test_dataset_bound_and_common_extractor_options(tmp_path):
-    """The synthetic dataset's 0.5 m bound fails a run that strays 2 m; every extractor gets the SLAM's keypoint cap."""
+    """The synthetic dataset's 0.5 m bound fails a run that strays 2 m; ORB gets the SLAM's keypoint cap."""
     from ruslam.eval.slam_report import run
 
     seen = {}

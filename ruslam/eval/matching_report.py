@@ -36,7 +36,6 @@ def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
     """Validate every name first (unknown -> one clear error), then build: ({name: extractor}, {name: skip note})."""
     weights = dict(task.get("weights") or {})
     options = OmegaConf.to_container(OmegaConf.create(task.get("extractor_options") or {}), resolve=True)
-    defaults = OmegaConf.to_container(OmegaConf.create(task.get("extractor_defaults") or {}), resolve=True)
     for name in names:
         if name not in weights and name not in EXTRACTORS and Path(str(name)).suffix not in WEIGHT_SUFFIXES:
             raise ValueError(
@@ -45,7 +44,7 @@ def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
             )
     built, skipped = {}, {}
     for name in names:
-        conf = {**defaults, **options.get(name, {})}  # options common to every extractor, then per-name ones
+        conf = dict(options.get(name, {}))
         if name in weights:
             path = weights[name]
             if not path or not Path(path).is_file():
