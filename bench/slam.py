@@ -66,7 +66,7 @@ def main() -> None:
                                          "se3" if args.stereo else "sim3")
             ape = errors.ape_rmse
         print(f"{name:10s} {extract_fps:11.1f} {slam_fps:9.1f} {slam_fps / extract_fps:6.2f} "
-              f"{result.tracked_ratio:8.1%} {result.num_keyframes:4d} {len(result.loops):5d} {ape:7.3f} "
+              f"{result.tracked_ratio:8.1%} {result.num_keyframes:4d} {len(result.loops):5d} {ape:7.4f} "
               f"{100 * ape / gt.path_length():9.2f}")
         per_frame = np.sort(result.timings)
         print(f"{'':10s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
