@@ -29,6 +29,10 @@ def test_failure_rule():
     assert "diverged: 1.50 m" in failure_reason(1.0, far, ref, RULE)
     assert failure_reason(1.0, far, ref, SimpleNamespace(min_tracked=0.8, bound_margin_m=None)) == ""
     assert failure_reason(0.9, None, ref, RULE) == "no pose matched the ground truth"
+    # path 4 + sqrt(10) = 7.16 m: 10 % of it is 0.716 m
+    ape_rule = SimpleNamespace(min_tracked=0.8, bound_margin_m=None, max_ape_fraction=0.1)
+    assert failure_reason(1.0, ref, ref, ape_rule, ape=0.70) == ""
+    assert "diverged: APE 0.80 m > 10% of the 7.16 m path" in failure_reason(1.0, ref, ref, ape_rule, ape=0.80)
 
 
 def _results():

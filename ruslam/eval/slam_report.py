@@ -52,14 +52,23 @@ class RunResult:
 # ------------------------------------------------------------------------------------------- failure and Avg
 
 
-def failure_reason(tracked: float, aligned_xyz: np.ndarray | None, reference_xyz: np.ndarray, rule) -> str:
-    """"" when the run counts, else why not: tracked fraction below ``rule.min_tracked``, or an aligned position
-    farther than ``rule.bound_margin_m`` outside the ground truth's axis-aligned bounding box (divergence)."""
+def failure_reason(tracked: float, aligned_xyz: np.ndarray | None, reference_xyz: np.ndarray, rule,
+                   ape: float | None = None) -> str:
+    """"" when the run counts, else why not: tracked fraction below ``rule.min_tracked``, an aligned position
+    farther than ``rule.bound_margin_m`` outside the ground truth's axis-aligned bounding box, or an APE above
+    ``rule.max_ape_fraction`` of the ground-truth path length (both divergence: a Sim3 alignment shrinks a lost
+    trajectory towards the centre of the box, where only the APE rule sees it)."""
     if tracked < rule.min_tracked:
         return f"tracked {tracked:.0%} of frames < {rule.min_tracked:.0%}"
     if aligned_xyz is None or len(aligned_xyz) == 0:
         return "no pose matched the ground truth"
-    margin = rule.get("bound_margin_m") if hasattr(rule, "get") else getattr(rule, "bound_margin_m", None)
+    get = rule.get if hasattr(rule, "get") else lambda key: getattr(rule, key, None)
+    fraction = get("max_ape_fraction")
+    if fraction is not None and ape is not None:
+        path = float(np.linalg.norm(np.diff(reference_xyz, axis=0), axis=1).sum())
+        if ape > fraction * path:
+            return f"diverged: APE {ape:.2f} m > {fraction:.0%} of the {path:.2f} m path"
+    margin = get("bound_margin_m")
     if margin is not None:
         lo, hi = reference_xyz.min(axis=0) - margin, reference_xyz.max(axis=0) + margin
         outside = np.maximum(lo - aligned_xyz, aligned_xyz - hi).max()
@@ -233,7 +242,7 @@ def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delt
             reason = str(err)
     if not reason:
         aligned = errors.aligned.positions_xyz if errors else None
-        reason = failure_reason(tracked, aligned, gt.positions, rule)
+        reason = failure_reason(tracked, aligned, gt.positions, rule, errors.ape_rmse if errors else None)
     if reason:
         return RunResult(ok=False, reason=reason, **base), {}
     return (RunResult(ok=True, reason="", ape=errors.ape_rmse, rpe=errors.rpe_rmse, **base),
