@@ -61,6 +61,8 @@ def test_table_layout_marks_failures_and_best():
     assert "| Avg | 0.200 | 0.030 | **0.125** | **0.020** |" in lines
     rows = table.splitlines()
     assert rows[0] == "Sequence,orb_ape,orb_rpe,uwnet_ape,uwnet_rpe" and rows[2] == "02,x,x,0.4,0.3"
+    sweep, _ = results_table(_results(), ["02"], ["orb", "uwnet"], ["ape", "tracked"], {}, "sweep")
+    assert "| 02 | × | 10% | 0.400 | **100%** |" in sweep.splitlines()  # a failed run still shows how far it got
     md3, _ = results_table(_results(), ["01", "02", "03"], ["orb", "uwnet"], ["ape"], {}, "EuRoC")
     assert "| Sequence | orb | uwnet |" in md3.splitlines()  # Table 3: one APE column per method
 

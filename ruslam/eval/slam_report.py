@@ -96,12 +96,15 @@ def _cell(value: float, metric: str) -> str:
 def results_table(results: list[RunResult], sequences: list[str], methods: list[str], metrics: list[str],
                   labels: dict, title: str, row_label: str = "Sequence") -> tuple[str, str]:
     """(markdown, csv) in the paper's layout: one row per sequence + Avg, one column per method (x metric);
-    failed runs are x, the best value of a row is bold (lowest error, highest tracked fraction)."""
+    failed runs are x (their tracked fraction is still shown), the best value of a row is bold (lowest error,
+    highest tracked fraction)."""
     by_key = {(r.sequence, r.method): r for r in results}
     avg, common = average_over_common_successes(results, sequences, methods, metrics)
     rows = []
     for s in sequences:
-        rows.append((s, {(m, k): (getattr(by_key[(s, m)], k) if (s, m) in by_key and by_key[(s, m)].ok else None)
+        # errors of a failed run are meaningless (x); its tracked fraction is measured and says how it failed
+        rows.append((s, {(m, k): (getattr(by_key[(s, m)], k) if (s, m) in by_key
+                                  and (by_key[(s, m)].ok or k == "tracked") else None)
                          for m in methods for k in metrics}))
     rows.append(("Avg", {key: (v if common else None) for key, v in avg.items()}))
     header = [row_label] + [f"{labels.get(m, m)} {METRICS[k]}" if len(metrics) > 1 else labels.get(m, m)
