@@ -129,3 +129,8 @@ def test_weights_file_extractor_is_evaluated(tmp_path):
     assert set(report["results"]) == {"uwnet_no_am_dcn"} and not report["skipped"]
     assert report["results"]["uwnet_no_am_dcn"]["overall"]["pairs"] == 2
     assert "| UWNet w/o AM-DCN |" in (tmp_path / "out" / "table.md").read_text()
+    # a weights path given directly as an extractor: its pictures are named after the file, inside out_dir
+    cfg = compose("evaluate", ["task=matching", "dataset=upatches", f"dataset.root={src}", "dataset.num_images=1",
+                               f"extractors=[{weights}]", f"out_dir={tmp_path / 'out2'}", *SMALL])
+    report = run(cfg)
+    assert report["pictures"] and all(p.startswith("matches/no_am_dcn.pt_") for p in report["pictures"])

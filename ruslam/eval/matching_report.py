@@ -102,7 +102,8 @@ def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path,
             if picture:
                 canvas = draw_matches(pair["image1"], pair["image2"], res.keypoints1, res.keypoints2, res.matches,
                                       res.match_errors <= task.eps)
-                path = out_dir / "matches" / f"{name}_{pair['name'].replace('/', '_')}.png"
+                stem = Path(str(name)).name  # an extractor given as a weights path: named after the file
+                path = out_dir / "matches" / f"{stem}_{pair['name'].replace('/', '_')}.png"
                 write_png(path, canvas)
                 pictures.append(str(path.relative_to(out_dir)))
             empty = np.zeros((0, 2))
