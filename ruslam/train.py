@@ -13,7 +13,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from ruslam.models.export import export_weights
+from ruslam.models.export import export_weights, load_uwnet
+from ruslam.models.uwnet import UWNet
 
 REPORTED = (("val/detector", "detector (L3, soft CE)"), ("val/local", "local descriptors (L2)"),
             ("val/global", "global descriptor (L1)"), ("val/loss", "total eq. 8"))
@@ -23,8 +24,20 @@ def _instantiate_all(group: DictConfig | None) -> list:
     return [instantiate(conf) for conf in (group or {}).values() if conf is not None and "_target_" in conf]
 
 
-def format_report(before: dict, after: dict) -> str:
-    lines = [f"{'held-out loss':<28}{'untrained':>12}{'trained':>12}"]
+def load_initial_weights(net: UWNet, path: str | Path) -> None:
+    """Fine-tuning: start from trained weights (exported .pt or Lightning .ckpt); unlike ckpt_path, the optimizer,
+    learning rate and epoch count start afresh from the config."""
+    source = load_uwnet(path)
+    differ = [k for k in net.config if source.config.get(k) != net.config[k]]
+    if differ:
+        k = differ[0]
+        raise ValueError(f"init_weights={path} holds a UWNet with {k}={source.config.get(k)!r}, but the configured "
+                         f"model has {k}={net.config[k]!r}; use weights of the same architecture.")
+    net.load_state_dict(source.state_dict())
+
+
+def format_report(before: dict, after: dict, start: str = "untrained") -> str:
+    lines = [f"{'held-out loss':<28}{start:>12}{'trained':>12}"]
     for key, label in REPORTED:
         if key in before and key in after:
             lines.append(f"{label:<28}{before[key]:>12.4f}{after[key]:>12.4f}")
@@ -39,6 +52,8 @@ def train(cfg: DictConfig) -> float | None:
     out_dir = Path(cfg.out_dir)
     datamodule = instantiate(cfg.datamodule, source=cfg.data, teacher=cfg.teacher)
     module = instantiate(cfg.model)
+    if cfg.get("init_weights"):
+        load_initial_weights(module.net, cfg.init_weights)
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=_instantiate_all(cfg.get("logger")) or False,
                                       callbacks=_instantiate_all(cfg.get("callbacks")))
     before = trainer.validate(module, datamodule=datamodule, verbose=False)[0]
@@ -49,7 +64,7 @@ def train(cfg: DictConfig) -> float | None:
     ckpt = getattr(trainer.checkpoint_callback, "last_model_path", "") or ""
     weights = out_dir / cfg.get("export_name", "uwnet.pt")
     export_weights(module.net, weights)
-    print(format_report(before, after))
+    print(format_report(before, after, "initial" if cfg.get("init_weights") else "untrained"))
     print(f"Lightning checkpoint: {ckpt or '(none: checkpointing disabled)'}")
     print(f"fp16 weights for load_extractor: {weights}")
     return float(after["val/loss"])

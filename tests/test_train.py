@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 
 from ruslam import load_extractor
 from ruslam.models.export import export_weights, load_uwnet
-from ruslam.train import format_report, train
+from ruslam.train import format_report, load_initial_weights, train
 from ruslam.training.module import NonFiniteLossError
 
 TINY = ["data.num_images=6", "data.height=64", "data.width=96", "datamodule.image_size=null",
@@ -34,6 +34,21 @@ def test_fast_dev_run_through_composed_config(tmp_path, cache_root):
     loss = train(_cfg(tmp_path, cache_root, ["+trainer.fast_dev_run=true"]))
     assert loss is not None and loss == loss  # finite float from the held-out set
     assert load_extractor(tmp_path / "uwnet.pt").extract(torch.rand(64, 96).numpy())["descriptors"].shape[1] == 64
+
+
+def test_init_weights_starts_from_trained_weights_and_refuses_another_architecture(tmp_path, cache_root, capsys):
+    cfg = _cfg(tmp_path, cache_root)
+    torch.manual_seed(1)
+    start = export_weights(instantiate(cfg.model.net), tmp_path / "start.pt")
+    net = instantiate(cfg.model.net)  # another random draw
+    load_initial_weights(net, start)
+    for (k, va), vb in zip(load_uwnet(start).state_dict().items(), net.state_dict().values(), strict=True):
+        assert torch.equal(va, vb), k
+    train(_cfg(tmp_path / "ft", cache_root, ["+trainer.fast_dev_run=true", f"init_weights={start}"]))
+    assert "initial" in capsys.readouterr().out
+    other = export_weights(instantiate(cfg.model.net, head_channels=32), tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="head_channels=32"):
+        train(_cfg(tmp_path / "bad", cache_root, ["+trainer.fast_dev_run=true", f"init_weights={other}"]))
 
 
 @pytest.mark.slow
