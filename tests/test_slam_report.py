@@ -152,7 +152,7 @@ def test_euroc_layout_is_table3_with_se3_alignment(tmp_path):
             slam_run=fake_slam)
 
 
-def test_dataset_bound_and_common_extractor_options(tmp_path):
+def test_dataset_bound_and_per_name_extractor_options(tmp_path):
     """The synthetic dataset's 0.5 m bound fails a run that strays 2 m; ORB gets the SLAM's keypoint cap."""
     from ruslam.eval.slam_report import run
 
@@ -166,7 +166,7 @@ def test_dataset_bound_and_common_extractor_options(tmp_path):
         return est
 
     out = run(_tiny_cfg(tmp_path, "[orb]"), slam_run=strays)
-    assert not out["results"][0]["ok"] and "diverged" in out["results"][0]["reason"]
+    assert not out["results"][0]["ok"] and "beyond the ground-truth box + 0.5 m" in out["results"][0]["reason"]
     assert seen == {"ORB": 1000}
     cfg = _tiny_cfg(tmp_path, "[orb]")
     cfg.dataset.failure.bound_margin_m = 5.0
