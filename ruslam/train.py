@@ -13,6 +13,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from ruslam.config_checks import check_train
+from ruslam.errors import InputError
 from ruslam.models.export import export_weights, load_uwnet
 from ruslam.models.uwnet import UWNet
 
@@ -31,7 +33,7 @@ def load_initial_weights(net: UWNet, path: str | Path) -> None:
     differ = [k for k in net.config if source.config.get(k) != net.config[k]]
     if differ:
         k = differ[0]
-        raise ValueError(f"init_weights={path} holds a UWNet with {k}={source.config.get(k)!r}, but the configured "
+        raise InputError(f"init_weights={path} holds a UWNet with {k}={source.config.get(k)!r}, but the configured "
                          f"model has {k}={net.config[k]!r}; use weights of the same architecture.")
     net.load_state_dict(source.state_dict())
 
@@ -46,6 +48,7 @@ def format_report(before: dict, after: dict, start: str = "untrained") -> str:
 
 def train(cfg: DictConfig) -> float | None:
     """Fit, report before/after held-out losses, export weights; returns the final held-out loss (for sweeps)."""
+    check_train(cfg)
     pl.seed_everything(cfg.seed, workers=True)
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg.torch_threads))

@@ -13,6 +13,7 @@ import numpy as np
 
 from ruslam.slam.geometry import pose_matrix, project
 from ruslam.slam.map import inverse_pose
+from ruslam.slam.readers import FrameReadError
 
 
 @dataclass
@@ -66,7 +67,7 @@ class FakeSequence:
 
     def load(self, i):
         if i in self.corrupt:
-            raise ValueError(f"Frame {i}.png is missing or cannot be decoded as an image.")
+            raise FrameReadError(f"Frame {i}.png is missing or cannot be decoded as an image.")
         images = []
         for c in range(len(self.cameras)):
             im = np.zeros((480, 640), np.uint8)

@@ -76,7 +76,7 @@ def test_without_reference_no_distance_and_five_columns(tmp_path):
 
 
 def test_bad_reference_fails_before_writing_anything(tmp_path):
-    with pytest.raises(FileNotFoundError, match="does not exist"):
+    with pytest.raises(FileNotFoundError, match="dataset.reference=.*missing: no such folder"):
         evaluate(_cfg(tmp_path, [f"dataset.reference={tmp_path / 'missing'}",
                                  f"dataset.background_light={_reference(tmp_path / 'light', 10)}"]))
     assert not (tmp_path / "run" / "table.md").exists()

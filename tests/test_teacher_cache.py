@@ -14,6 +14,7 @@ import torch
 
 from ruslam.data import teacher_cache
 from ruslam.data.teacher_cache import TeacherCache, TeacherCacheError, build_cache
+from ruslam.errors import InputError
 
 # A tiny seeded teacher and dataset, shared by this process and the SIGKILLed child (same file, runpy).
 FIXTURES = '''
@@ -144,10 +145,10 @@ def test_other_teacher_configuration_is_refused(fx, tmp_path):
 
 def test_unreadable_image_is_named_and_leaves_a_valid_cache(fx, tmp_path):
     message = r"Image 'seq/002' is unreadable: expected a finite HxWx3 array, got NoneType"
-    with pytest.raises(ValueError, match=message):  # met while fitting the VLAD codebook
+    with pytest.raises(InputError, match=message):  # met while fitting the VLAD codebook: the same type and sentence
         build_cache(fx["Images"](4, broken={2}), fx["tiny_teacher"](), tmp_path)
     build_cache(fx["Images"](4), fx["tiny_teacher"](), tmp_path, commit_every=2)
-    with pytest.raises(TeacherCacheError, match=message.replace("002", "005")):  # met while caching
+    with pytest.raises(InputError, match=message.replace("002", "005")):  # met while caching
         build_cache(fx["Images"](7, broken={5}), fx["tiny_teacher"](), tmp_path, commit_every=2)
     assert no_temp_files(tmp_path)
     assert len(TeacherCache(tmp_path)) == 4  # image 4 was in the uncommitted shard: dropped, recomputed below

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from ruslam.data.water import WATER_TYPES, camera_response, kd_spectrum
+from ruslam.errors import InputError, MissingInput
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 DEFAULT_DEPTHS_M = (2.0, 5.0, 10.0)
@@ -45,7 +46,7 @@ def regions_background_light(image: np.ndarray, num_regions: int, rng: np.random
     """A = L * eta [num_regions, 3] from ``num_regions`` uniformly placed region_size^2 windows of ``image``."""
     h, w = image.shape[:2]
     if h < region_size or w < region_size:
-        raise ValueError(f"Image of {h}x{w} pixels is smaller than one {region_size}x{region_size} region.")
+        raise InputError(f"Image of {h}x{w} pixels is smaller than one {region_size}x{region_size} region.")
     ys = rng.integers(0, h - region_size + 1, size=num_regions)
     xs = rng.integers(0, w - region_size + 1, size=num_regions)
     out = np.empty((num_regions, 3))
@@ -59,11 +60,11 @@ def read_rgb(path: Path) -> np.ndarray:
     """float64 RGB [h,w,3] in [0,1] from an 8- or 16-bit colour image; one clear sentence otherwise."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
-        raise ValueError(f"Cannot read {path} as an image (corrupt or unsupported format).")
+        raise InputError(f"Cannot read {path} as an image (corrupt or unsupported format).")
     if raw.ndim == 2 or raw.shape[2] == 1:
-        raise ValueError(f"{path} is a grayscale image; background light needs colour (RGB) underwater images.")
+        raise InputError(f"{path} is a grayscale image; background light needs colour (RGB) underwater images.")
     if raw.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"{path} has {raw.dtype} pixels; expected an 8- or 16-bit RGB image.")
+        raise InputError(f"{path} has {raw.dtype} pixels; expected an 8- or 16-bit RGB image.")
     scale = 255.0 if raw.dtype == np.uint8 else 65535.0
     return raw[..., 2::-1].astype(np.float64) / scale  # BGR(A) -> RGB
 
@@ -71,7 +72,7 @@ def read_rgb(path: Path) -> np.ndarray:
 def list_images(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
-        raise FileNotFoundError(f"Underwater image folder {folder} does not exist.")
+        raise MissingInput(f"Underwater image folder {folder} does not exist.")
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
@@ -79,10 +80,10 @@ def estimate_pool(folder: str | Path, num_images: int = 10, regions_per_image: i
                   seed: int = 0) -> np.ndarray:
     """The pool A* [N*P, 3] from N images of ``folder`` (a seeded choice when it holds more), P regions each."""
     if num_images < 1 or regions_per_image < 1:
-        raise ValueError(f"num_images ({num_images}) and regions_per_image ({regions_per_image}) must be >= 1.")
+        raise InputError(f"num_images ({num_images}) and regions_per_image ({regions_per_image}) must be >= 1.")
     paths = list_images(folder)
     if len(paths) < num_images:
-        raise ValueError(f"{folder} holds {len(paths)} images ({', '.join(IMAGE_SUFFIXES)}); "
+        raise InputError(f"{folder} holds {len(paths)} images ({', '.join(IMAGE_SUFFIXES)}); "
                          f"background-light estimation needs N = {num_images}.")
     rng = np.random.default_rng(seed)
     chosen = [paths[i] for i in sorted(rng.choice(len(paths), size=num_images, replace=False))]

@@ -17,15 +17,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ruslam.errors import InputError, MissingInput
+
 
 def read_image(path: Path) -> np.ndarray:
     """uint8 HxWx3 RGB, or one clear error when the file is not a readable image."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"Image file {path} does not exist.")
+        raise MissingInput(f"Image file {path} does not exist.")
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
-        raise ValueError(f"Cannot read image {path}: it is not a readable image file (corrupt or unknown format).")
+        raise InputError(f"Cannot read image {path}: it is not a readable image file (corrupt or unknown format).")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
@@ -35,9 +37,9 @@ def read_homography(path: Path) -> np.ndarray:
     try:
         H = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except (OSError, ValueError) as exc:
-        raise ValueError(f"Cannot read homography file {path}: expected 3 rows of 3 numbers ({exc}).") from None
+        raise InputError(f"Cannot read homography file {path}: expected 3 rows of 3 numbers ({exc}).") from None
     if H.shape != (3, 3) or not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
-        raise ValueError(f"Homography file {path} must hold an invertible 3x3 matrix, got shape {H.shape}.")
+        raise InputError(f"Homography file {path} must hold an invertible 3x3 matrix, got shape {H.shape}.")
     return H
 
 
@@ -83,18 +85,18 @@ def read_sequence(folder: Path) -> Sequence:
         images.append(folder / f"{k}.ppm")
         k += 1
     if len(images) < 2:
-        raise ValueError(f"Sequence folder {folder} must hold at least 1.ppm and 2.ppm, found {len(images)} image(s).")
+        raise InputError(f"Sequence folder {folder} must hold at least 1.ppm and 2.ppm, found {len(images)} image(s).")
     homographies = []
     for k in range(2, len(images) + 1):
         path = folder / f"H_1_{k}"
         if not path.is_file():
-            raise FileNotFoundError(f"Sequence folder {folder} has {k}.ppm but no homography file H_1_{k}.")
+            raise MissingInput(f"Sequence folder {folder} has {k}.ppm but no homography file H_1_{k}.")
         homographies.append(read_homography(path))
     rotations = None
     if (folder / "rotation_deg.txt").is_file():
         rotations = np.loadtxt(folder / "rotation_deg.txt", dtype=np.float64, ndmin=1).tolist()
         if len(rotations) != len(homographies):
-            raise ValueError(
+            raise InputError(
                 f"{folder / 'rotation_deg.txt'} must hold {len(homographies)} values (one per pair), "
                 f"got {len(rotations)}."
             )
@@ -111,7 +113,7 @@ class HPatches:
     def __init__(self, root: str | Path, size=(480, 640), kinds=None, max_sequences: int | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise FileNotFoundError(f"HPatches root {self.root} is not a folder.")
+            raise MissingInput(f"HPatches root {self.root} is not a folder.")
         self.size = None if size is None else (int(size[0]), int(size[1]))
         folders = sorted(p for p in self.root.iterdir() if p.is_dir() and (p / "1.ppm").is_file())
         if kinds is not None:
@@ -119,7 +121,7 @@ class HPatches:
         if max_sequences is not None:
             folders = folders[: int(max_sequences)]
         if not folders:
-            raise ValueError(
+            raise InputError(
                 f"HPatches root {self.root} holds no sequence folder (with 1.ppm) of kinds {kinds}; "
                 "expected folders like i_*/ or v_*/ with 1.ppm ... 6.ppm and H_1_2 ... H_1_6."
             )

@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 
 from ruslam.data.rgbd_sample import make_sample
+from ruslam.errors import InputError, MissingInput
 
 SPLITS = ("train", "test", "all")
 NYU_LABELED_URL = "http://horatio.cs.nyu.edu/mit/silberman/nyu_depth_v2/nyu_depth_v2_labeled.mat"
@@ -28,9 +29,9 @@ NYU_LABELED_URL = "http://horatio.cs.nyu.edu/mit/silberman/nyu_depth_v2/nyu_dept
 def split_indices(num_images: int, split: str, num_test: int = 200, split_seed: int = 0) -> np.ndarray:
     """Sorted file indices of ``split``: test = ``num_test`` seeded random images, train = the rest."""
     if split not in SPLITS:
-        raise ValueError(f"Unknown NYU split {split!r}; expected one of {SPLITS}.")
+        raise InputError(f"Unknown NYU split {split!r}; expected one of {SPLITS}.")
     if not 0 < num_test < num_images:
-        raise ValueError(f"num_test must be between 1 and {num_images - 1} (the file has {num_images} images), "
+        raise InputError(f"num_test must be between 1 and {num_images - 1} (the file has {num_images} images), "
                          f"got {num_test}.")
     if split == "all":
         return np.arange(num_images)
@@ -52,20 +53,20 @@ class NYUDepthV2:
     @staticmethod
     def _check_file(path: Path) -> int:
         if not path.is_file():
-            raise FileNotFoundError(f"NYU-Depth-v2 file {path} does not exist; download {NYU_LABELED_URL} "
+            raise MissingInput(f"NYU-Depth-v2 file {path} does not exist; download {NYU_LABELED_URL} "
                                     f"(2.8 GB) and pass its path.")
         if not h5py.is_hdf5(path):
-            raise ValueError(f"{path} is not an HDF5 file; expected the MATLAB v7.3 nyu_depth_v2_labeled.mat.")
+            raise InputError(f"{path} is not an HDF5 file; expected the MATLAB v7.3 nyu_depth_v2_labeled.mat.")
         with h5py.File(path, "r") as f:
             for key in ("images", "depths"):
                 if not isinstance(f.get(key), h5py.Dataset):
-                    raise ValueError(f"{path} has no dataset {key!r}; expected the NYU-Depth-v2 labeled .mat "
+                    raise InputError(f"{path} has no dataset {key!r}; expected the NYU-Depth-v2 labeled .mat "
                                      f"with 'images' (N,3,W,H) and 'depths' (N,W,H).")
             images, depths = f["images"].shape, f["depths"].shape
         if len(images) != 4 or images[1] != 3 or len(depths) != 3:
-            raise ValueError(f"{path}: 'images' must be (N,3,W,H) and 'depths' (N,W,H), got {images} and {depths}.")
+            raise InputError(f"{path}: 'images' must be (N,3,W,H) and 'depths' (N,W,H), got {images} and {depths}.")
         if images[0] != depths[0] or images[2:] != depths[1:]:
-            raise ValueError(f"{path}: 'images' {images} and 'depths' {depths} differ in image count or size; "
+            raise InputError(f"{path}: 'images' {images} and 'depths' {depths} differ in image count or size; "
                              f"each RGB image needs a depth map of the same size.")
         return images[0]
 

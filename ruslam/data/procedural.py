@@ -18,6 +18,7 @@ import numpy as np
 
 from ruslam.data.procedural_render import Scene, intrinsics, jitter_pose, look_pose, render
 from ruslam.data.procedural_textures import TEXTURE_SIZE, texture_bank
+from ruslam.errors import InputError
 
 __all__ = ["ProceduralRGBD", "Scene", "intrinsics", "jitter_pose", "look_pose", "random_scene", "render"]
 
@@ -107,10 +108,10 @@ class ProceduralRGBD:
     def __init__(self, num_images: int, height: int = 240, width: int = 320, seed: int = 0,
                  hfov_deg: float = 60.0, num_textures: int = 48):
         if num_images < 1 or height < 16 or width < 16:
-            raise ValueError(f"ProceduralRGBD needs num_images >= 1 and an image of at least 16x16 pixels, got "
+            raise InputError(f"ProceduralRGBD needs num_images >= 1 and an image of at least 16x16 pixels, got "
                              f"num_images={num_images}, height={height}, width={width}.")
         if not 10.0 <= hfov_deg <= 150.0:
-            raise ValueError(f"hfov_deg must lie in [10, 150] degrees, got {hfov_deg}.")
+            raise InputError(f"hfov_deg must lie in [10, 150] degrees, got {hfov_deg}.")
         self.num_images, self.height, self.width, self.seed = int(num_images), int(height), int(width), int(seed)
         self.hfov_deg, self.num_textures = float(hfov_deg), int(num_textures)
         self.K = intrinsics(self.height, self.width, self.hfov_deg)

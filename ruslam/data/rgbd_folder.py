@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from ruslam.data.rgbd_sample import make_sample
+from ruslam.errors import InputError, MissingInput
 
 COLOUR_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".bmp", ".tif", ".tiff")
 DEPTH_SUFFIXES = (".png", ".pgm", ".tif", ".tiff", ".npy", ".csv")
@@ -46,7 +47,7 @@ def associate_by_time(colours: dict[str, Path], depths: dict[str, Path], max_tim
         tc = {k: float(k) for k in colours}
         td = {k: float(k) for k in depths}
     except ValueError:
-        raise ValueError(f"RGB-D folder {root}: max_time_diff needs file names that are timestamps in seconds "
+        raise InputError(f"RGB-D folder {root}: max_time_diff needs file names that are timestamps in seconds "
                          f"(e.g. 1305031102.175304.png); got names like {next(iter(colours))!r}.") from None
     d_keys = sorted(td, key=td.get)
     d_times = np.array([td[k] for k in d_keys])
@@ -61,7 +62,7 @@ def associate_by_time(colours: dict[str, Path], depths: dict[str, Path], max_tim
         if a not in used_c and b not in used_d:
             used_c.add(a), used_d.add(b), pairs.append((a, colours[a], depths[b]))
     if not pairs:
-        raise ValueError(f"RGB-D folder {root}: no colour/depth timestamps within {max_time_diff} s of each other.")
+        raise InputError(f"RGB-D folder {root}: no colour/depth timestamps within {max_time_diff} s of each other.")
     return sorted(pairs, key=lambda p: tc[p[0]])
 
 
@@ -78,14 +79,14 @@ def find_pairs(root: Path, max_time_diff: float | None = None) -> list[tuple[str
         colours = {_COLOUR_PREFIX.sub("", p.stem): p for p in files
                    if not _DEPTH_PREFIX.match(p.stem) and p.suffix.lower() in COLOUR_SUFFIXES}
     if not colours and not depths:
-        raise ValueError(f"RGB-D folder {root} holds no colour/depth pairs; expected color/ + depth/ sub-folders "
+        raise InputError(f"RGB-D folder {root} holds no colour/depth pairs; expected color/ + depth/ sub-folders "
                          f"or files like img1.jpg + depth1.png.")
     if max_time_diff is not None and colours and depths:
         return associate_by_time(colours, depths, max_time_diff, root)
     unpaired = sorted(str(p) for k, p in colours.items() if k not in depths)
     unpaired += sorted(str(p) for k, p in depths.items() if k not in colours)
     if unpaired:
-        raise ValueError(f"RGB-D folder {root} has {len(unpaired)} file(s) without a colour/depth partner, "
+        raise InputError(f"RGB-D folder {root} has {len(unpaired)} file(s) without a colour/depth partner, "
                          f"e.g. {unpaired[0]}; every colour image needs a depth file with the same key "
                          f"(TUM-style timestamps: set max_time_diff).")
     return [(k, colours[k], depths[k]) for k in sorted(colours, key=_natural)]
@@ -95,11 +96,11 @@ def read_colour(path: Path) -> np.ndarray:
     """8-bit RGB HxWx3 (alpha dropped); grayscale and 16-bit colour images are refused."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise ValueError(f"Colour image {path} cannot be read as an image.")
+        raise InputError(f"Colour image {path} cannot be read as an image.")
     if image.ndim == 2 or image.shape[2] == 1:
-        raise ValueError(f"Colour image {path} is grayscale; an RGB colour image is expected.")
+        raise InputError(f"Colour image {path} is grayscale; an RGB colour image is expected.")
     if image.dtype != np.uint8:
-        raise ValueError(f"Colour image {path} is {image.dtype} ({8 * image.itemsize}-bit); 8-bit RGB is expected.")
+        raise InputError(f"Colour image {path} is {image.dtype} ({8 * image.itemsize}-bit); 8-bit RGB is expected.")
     return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
@@ -114,18 +115,18 @@ def read_depth(path: Path, depth_scale: float) -> np.ndarray:
         else:
             depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if depth is None:
-                raise ValueError("unreadable")
+                raise InputError("unreadable")
     except (ValueError, OSError, EOFError) as err:
-        raise ValueError(f"Depth file {path} cannot be read as a depth map ({err}).") from None
+        raise InputError(f"Depth file {path} cannot be read as a depth map ({err}).") from None
     if depth.ndim != 2:
-        raise ValueError(f"Depth file {path} must hold one HxW channel, got shape {depth.shape}.")
+        raise InputError(f"Depth file {path} must hold one HxW channel, got shape {depth.shape}.")
     if depth.dtype == np.uint8:
-        raise ValueError(f"Depth file {path} is 8-bit, which cannot hold metric depth; expected 16-bit integers "
+        raise InputError(f"Depth file {path} is 8-bit, which cannot hold metric depth; expected 16-bit integers "
                          f"(scaled by depth_scale) or metres in .npy/.csv/float TIFF.")
     if np.issubdtype(depth.dtype, np.integer):
         return depth.astype(np.float32) / np.float32(depth_scale)
     if not np.issubdtype(depth.dtype, np.floating):
-        raise ValueError(f"Depth file {path} has dtype {depth.dtype}; expected integers or floats.")
+        raise InputError(f"Depth file {path} has dtype {depth.dtype}; expected integers or floats.")
     return depth.astype(np.float32)
 
 
@@ -135,12 +136,12 @@ class RGBDFolder:
     def __init__(self, root: str | Path, depth_scale: float = 1000.0, max_time_diff: float | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise FileNotFoundError(f"RGB-D folder {self.root} does not exist.")
+            raise MissingInput(f"RGB-D folder {self.root} does not exist.")
         if not depth_scale > 0:
-            raise ValueError(f"depth_scale must be positive (1000 for millimetres, 5000 for TUM), got {depth_scale}.")
+            raise InputError(f"depth_scale must be positive (1000 for millimetres, 5000 for TUM), got {depth_scale}.")
         self.depth_scale = float(depth_scale)
         if max_time_diff is not None and not max_time_diff > 0:
-            raise ValueError(f"max_time_diff must be positive seconds (TUM uses 0.02), got {max_time_diff}.")
+            raise InputError(f"max_time_diff must be positive seconds (TUM uses 0.02), got {max_time_diff}.")
         self.pairs = find_pairs(self.root, max_time_diff)
 
     def __len__(self) -> int:

@@ -35,6 +35,7 @@ from kornia.filters import get_motion_kernel2d
 
 from ruslam.data.background_light import background_light_pool
 from ruslam.data.water import WATER_TYPES, beta_rgb, check_water_type
+from ruslam.errors import InputError
 
 
 def motion_kernel(angle_deg: float, length: float) -> torch.Tensor | None:
@@ -135,7 +136,7 @@ def image_generator(seed: int, index: int) -> torch.Generator:
 def _range(value, name: str) -> tuple[float, float]:
     lo, hi = (float(value), float(value)) if np.isscalar(value) else (float(value[0]), float(value[1]))
     if not 0 <= lo <= hi:
-        raise ValueError(f"{name} must be a value or a (lo, hi) range with 0 <= lo <= hi; got {value!r}.")
+        raise InputError(f"{name} must be a value or a (lo, hi) range with 0 <= lo <= hi; got {value!r}.")
     return lo, hi
 
 
@@ -155,19 +156,19 @@ class PseudoUnderwater:
             water_types = [water_types]
         self.water_types = tuple(check_water_type(str(w)) for w in water_types)
         if not self.water_types:
-            raise ValueError(f"water_types is empty; expected some of {', '.join(WATER_TYPES)}.")
+            raise InputError(f"water_types is empty; expected some of {', '.join(WATER_TYPES)}.")
         if background_light is None or isinstance(background_light, str | Path):
             pool = background_light_pool(background_light)
         else:
             pool = np.asarray(background_light, dtype=np.float64)
         if pool.ndim != 2 or pool.shape[1] != 3 or len(pool) == 0 or not np.all((pool >= 0) & (pool <= 1)):
-            raise ValueError(f"background_light pool must be a non-empty [K,3] array in [0,1]; got {pool.shape}.")
+            raise InputError(f"background_light pool must be a non-empty [K,3] array in [0,1]; got {pool.shape}.")
         self.pool = pool
         self.betas = np.stack([beta_rgb(w) for w in self.water_types])
         self.blur_angle_deg, self.blur_length = float(blur_angle_deg), float(blur_length)
         self.noise_std, self.low_light = _range(noise_std, "noise_std"), _range(low_light, "low_light")
         if self.low_light[1] > 1:
-            raise ValueError(f"low_light must lie in [0, 1]; got {low_light!r}.")
+            raise InputError(f"low_light must lie in [0, 1]; got {low_light!r}.")
         self.seed = int(seed)
 
     def for_water_type(self, name: str) -> PseudoUnderwater:

@@ -31,6 +31,8 @@ import torch
 from pytorch_lightning.callbacks import BasePredictionWriter
 from torch.utils.data import DataLoader, Dataset
 
+from ruslam.data.rgbd_sample import sample_image
+from ruslam.errors import InputError, MissingInput
 from ruslam.models.teachers import module_fingerprint
 
 MANIFEST = "teacher.json"
@@ -41,8 +43,8 @@ def group_name(image_id: str) -> str:
     return quote(str(image_id), safe="")
 
 
-class TeacherCacheError(RuntimeError):
-    pass
+class TeacherCacheError(InputError):
+    """The teacher cache cannot be built from this source or on this disk (one sentence, no traceback)."""
 
 
 class TeacherCache:
@@ -56,15 +58,15 @@ class TeacherCache:
         self.cache_dir = Path(cache_dir)
         manifest = read_manifest(self.cache_dir)
         if manifest is None:
-            raise FileNotFoundError(f"{self.cache_dir} is not a teacher cache (no {MANIFEST}); build it first.")
+            raise MissingInput(f"{self.cache_dir} is not a teacher cache (no {MANIFEST}); build it first.")
         self.fingerprint = manifest["fingerprint"]
         if fingerprint is not None and fingerprint != self.fingerprint:
-            raise ValueError(mismatch_message(self.cache_dir, self.fingerprint, fingerprint))
+            raise InputError(mismatch_message(self.cache_dir, self.fingerprint, fingerprint))
         self._index: dict[str, Path] = {}
         for shard in sorted(self.cache_dir.glob("shard-*.h5")):
             with h5py.File(shard, "r") as f:
                 if f.attrs.get("teacher_fingerprint") != self.fingerprint:
-                    raise ValueError(mismatch_message(shard, f.attrs.get("teacher_fingerprint"), self.fingerprint))
+                    raise InputError(mismatch_message(shard, f.attrs.get("teacher_fingerprint"), self.fingerprint))
                 for name in f:
                     self._index.setdefault(name, shard)
         self._files: dict[Path, h5py.File] = {}
@@ -106,7 +108,7 @@ def read_manifest(cache_dir: Path) -> dict | None:
     try:
         return json.loads(path.read_text())
     except (ValueError, OSError) as err:
-        raise ValueError(f"Teacher cache manifest {path} is unreadable ({err}); delete the cache folder.") from None
+        raise InputError(f"Teacher cache manifest {path} is unreadable ({err}); delete the cache folder.") from None
 
 
 def mismatch_message(where, found, expected) -> str:
@@ -242,10 +244,7 @@ class _CacheInputs(Dataset):
 
     def __getitem__(self, k: int) -> dict:
         item = _load_item(self.dataset, self.indices[k])
-        image_id, image = str(item["id"]), item.get("image")
-        if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or not np.isfinite(image).all():
-            shape = getattr(image, "shape", type(image).__name__)
-            raise TeacherCacheError(f"Image {image_id!r} is unreadable: expected a finite HxWx3 array, got {shape}.")
+        image_id, image = str(item["id"]), sample_image(item)
         return {"id": image_id, "image": torch.from_numpy(np.ascontiguousarray(image, np.float32)).permute(2, 0, 1)}
 
 
@@ -300,7 +299,7 @@ def build_cache(
     fingerprint = module_fingerprint(teacher, config)
     manifest = read_manifest(cache_dir)
     if manifest is not None and manifest.get("fingerprint") != fingerprint:
-        raise ValueError(mismatch_message(cache_dir, manifest.get("fingerprint"), fingerprint))
+        raise InputError(mismatch_message(cache_dir, manifest.get("fingerprint"), fingerprint))
     if manifest is None:
         write_manifest(cache_dir, {"fingerprint": fingerprint, "config": config or {}, "float16": float16})
     remove_orphan_shards(cache_dir)

@@ -28,6 +28,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from ruslam.data.hpatches import HPatches, read_image, resize_image
+from ruslam.errors import InputError, MissingInput
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 MANIFEST = "upatches.json"
@@ -141,12 +142,12 @@ def list_folder_images(root: str | Path, num_images: int | None) -> list[Path]:
     """The first ``num_images`` image files of a folder in natural order (1, 2, ..., 10), or one clear error."""
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"Upatches image folder {root} is not a folder.")
+        raise MissingInput(f"Upatches image folder {root} is not a folder.")
     files = sorted((p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
     if num_images is None:
         num_images = len(files)
     if num_images < 1 or len(files) < num_images:
-        raise ValueError(
+        raise InputError(
             f"Folder {root} holds {len(files)} image(s) ({'/'.join(IMAGE_SUFFIXES)}), "
             f"fewer than the {num_images} asked (num_images)."
         )

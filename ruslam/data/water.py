@@ -27,6 +27,8 @@ from functools import cache, lru_cache
 
 import numpy as np
 
+from ruslam.errors import InputError
+
 WATER_TYPES: tuple[str, ...] = ("I", "IA", "IB", "II", "III", "1C", "3C", "5C", "7C", "9C")
 KD_SOURCE = "jerlov1976"
 BAND_NM = (400.0, 700.0)
@@ -35,7 +37,7 @@ BAND_NM = (400.0, 700.0)
 def check_water_type(name: str) -> str:
     """Return ``name`` if it is a Jerlov type, else raise one sentence listing the valid names."""
     if name not in WATER_TYPES:
-        raise ValueError(f"Unknown Jerlov water type {name!r}; expected one of {', '.join(WATER_TYPES)}.")
+        raise InputError(f"Unknown Jerlov water type {name!r}; expected one of {', '.join(WATER_TYPES)}.")
     return name
 
 

@@ -25,6 +25,7 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from ruslam.errors import MissingWeights
 from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
 from ruslam.eval.matching import PairResult, evaluate_pair, rotation_bin, summarize
 from ruslam.models.registry import EXTRACTORS, load_extractor
@@ -54,8 +55,8 @@ def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
         elif name in EXTRACTORS:
             try:
                 built[name] = load_extractor(name, device=task.device, **conf)
-            except Exception as exc:  # noqa: BLE001 (any failure to build makes this extractor unavailable here)
-                skipped[name] = f"unavailable: {type(exc).__name__}: {exc}"
+            except MissingWeights as exc:  # absent weights only: an extractor that crashes is a bug, not a note
+                skipped[name] = f"unavailable: {exc}"
         else:
             built[name] = load_extractor(name, device=task.device, **conf)  # an explicit weights path must exist
     return built, skipped

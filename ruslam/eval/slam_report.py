@@ -25,12 +25,13 @@ import numpy as np
 from hydra.utils import get_method, instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from ruslam.config_checks import SLAM_METRICS as METRICS
+from ruslam.errors import InputError, MissingInput
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam.readers import Trajectory, write_tum_trajectory
 
 log = logging.getLogger(__name__)
 FAIL = "×"
-METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked"}
 
 
 @dataclass
@@ -220,7 +221,7 @@ def open_sequence(dataset: DictConfig, name: str, entry: str):
         return reader(entry)
     path = Path(str(root)) / entry if root else None
     if path is None or not path.exists():
-        raise FileNotFoundError(f"Dataset {dataset.label} not found: sequence {name} expected at "
+        raise MissingInput(f"Dataset {dataset.label} not found: sequence {name} expected at "
                                 f"{path if path else '<dataset.root>/' + entry}. {dataset.download} Then pass "
                                 f"dataset.root=<folder>.")
     return reader(path)
@@ -266,7 +267,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     if select:  # dataset.select=[MH01,MH03]: a subset, in the given order
         unknown = [str(s) for s in select if str(s) not in sequences]
         if unknown:
-            raise ValueError(f"dataset.select names unknown sequence(s) {unknown}; expected some of {list(sequences)}.")
+            raise InputError(f"dataset.select names unknown sequence(s) {unknown}; expected some of {list(sequences)}.")
         sequences = {str(s): sequences[str(s)] for s in select}
     opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
     extractors, skipped = resolve_extractors(list(cfg.extractors), task)
@@ -278,7 +279,8 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
         for method, extractor in extractors.items():
             try:
                 estimate = slam_run(seq, extractor, cfg.slam)
-            except Exception as exc:  # noqa: BLE001 (one crashed run is a failed cell, not a lost evaluation)
+            except RuntimeError as exc:  # a failed solve (gtsam raises RuntimeError) or mapping thread: an x cell;
+                # programming errors (TypeError, KeyError, ValueError...) propagate rather than hide as a failed run
                 log.exception("SLAM crashed on %s with %s", name, method)
                 results.append(RunResult(name, method, False, f"crashed: {type(exc).__name__}: {exc}"))
                 continue

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from ruslam.data.background_light import background_light_pool, list_images, read_rgb
 from ruslam.data.synthesis import attenuate_eq1
 from ruslam.data.water import check_water_type
+from ruslam.errors import InputError
 from ruslam.eval.quality import quality
 
 METRICS = ("uciqe", "uiqm", "uicm", "uism", "uiconm")
@@ -61,7 +62,7 @@ def fit(image: np.ndarray, height: int, width: int, interpolation=cv2.INTER_AREA
 def select_indices(n_source: int, num_images: int, seed: int) -> list[int]:
     """All indices if the source is no larger than the split, else a seeded random subset (sorted)."""
     if num_images < 1:
-        raise ValueError(f"dataset.num_images must be >= 1; got {num_images}.")
+        raise InputError(f"dataset.num_images must be >= 1; got {num_images}.")
     if n_source <= num_images:
         return list(range(n_source))
     return sorted(np.random.default_rng(seed).choice(n_source, size=num_images, replace=False).tolist())
@@ -141,7 +142,7 @@ def grid_png(rows: list[list[np.ndarray]], titles: list[str]) -> bytes:
 def load_reference(folder: str | Path, height: int, width: int) -> list[np.ndarray]:
     paths = list_images(folder)
     if not paths:
-        raise ValueError(f"Reference folder {folder} holds no images (expected real underwater RGB images).")
+        raise InputError(f"Reference folder {folder} holds no images (expected real underwater RGB images).")
     return [fit(read_rgb(p).astype(np.float32), height, width) for p in paths]
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from ruslam.errors import InputError, MissingWeights
 from ruslam.models.uwnet import UWNet
 
 FORMAT = "ruslam-uwnet"
@@ -30,13 +31,13 @@ def _atomic_save(obj, path: Path) -> None:
 
 def _load(path: Path) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"UWNet weights file {path} does not exist.")
+        raise MissingWeights(f"UWNet weights file {path} does not exist.")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 (any unreadable/unsafe file gets one sentence)
-        raise ValueError(f"{path} is not a readable weights-only torch file ({type(err).__name__}).") from None
+        raise InputError(f"{path} is not a readable weights-only torch file ({type(err).__name__}).") from None
     if not isinstance(obj, dict):
-        raise ValueError(f"{path} does not hold a dict of weights (got {type(obj).__name__}).")
+        raise InputError(f"{path} does not hold a dict of weights (got {type(obj).__name__}).")
     return obj
 
 
@@ -45,7 +46,7 @@ def lightning_to_payload(ckpt_path: str | Path) -> dict:
     path = Path(ckpt_path)
     ckpt = _load(path)
     if "uwnet_config" not in ckpt or "state_dict" not in ckpt:
-        raise ValueError(f"{path} is not a DistillationModule checkpoint (no 'uwnet_config'/'state_dict').")
+        raise InputError(f"{path} is not a DistillationModule checkpoint (no 'uwnet_config'/'state_dict').")
     state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
     return _payload(dict(ckpt["uwnet_config"]), state)
 
@@ -73,23 +74,23 @@ def load_uwnet(path: str | Path, descriptor_dim: int | None = None) -> UWNet:
     if "uwnet_config" in obj:  # a Lightning checkpoint straight from training
         obj = lightning_to_payload(path)
     if obj.get("format") != FORMAT or "config" not in obj or "state_dict" not in obj:
-        raise ValueError(f"{path} is not a UWNet weights file (expected format {FORMAT!r}); export one with "
+        raise InputError(f"{path} is not a UWNet weights file (expected format {FORMAT!r}); export one with "
                          f"`python -m ruslam.models.export CHECKPOINT OUT.pt`.")
     config = dict(obj["config"])
     if descriptor_dim is not None and config.get("descriptor_dim") != descriptor_dim:
-        raise ValueError(f"{path} has {config.get('descriptor_dim')}-d descriptors, but {descriptor_dim}-d were "
+        raise InputError(f"{path} has {config.get('descriptor_dim')}-d descriptors, but {descriptor_dim}-d were "
                          f"requested.")
     try:
         net = UWNet(**config)
     except TypeError as err:
-        raise ValueError(f"{path} holds an unknown UWNet configuration ({err}).") from None
+        raise InputError(f"{path} holds an unknown UWNet configuration ({err}).") from None
     own = net.state_dict()
     state = obj["state_dict"]
     missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
     wrong = [k for k in own if k in state and own[k].shape != state[k].shape]
     if missing or unexpected or wrong:
         first = (missing or unexpected or wrong)[0]
-        raise ValueError(f"{path} does not match the UWNet architecture of its config (first mismatch: {first}).")
+        raise InputError(f"{path} does not match the UWNet architecture of its config (first mismatch: {first}).")
     net.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()})
     return net.eval()
 

@@ -18,6 +18,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ruslam.errors import InputError
+
 
 class Extractor:
     default_conf: dict = {}
@@ -27,7 +29,7 @@ class Extractor:
     def __init__(self, **conf):
         unknown = set(conf) - set(self.default_conf)
         if unknown:
-            raise ValueError(
+            raise InputError(
                 f"{type(self).__name__} got unknown option(s) {sorted(unknown)}; "
                 f"expected some of {sorted(self.default_conf)}."
             )
@@ -40,23 +42,35 @@ class Extractor:
         return self.extract(image)
 
 
+#: Float images may exceed [0, 1] by this much (resampling overshoot); anything beyond is a scaling mistake.
+FLOAT_RANGE_TOLERANCE = 1e-3
+
+
 def check_image(image) -> np.ndarray:
-    """Validate an input image: HxW or HxWx3 (RGB), uint8 or float in [0, 1]; returns it unchanged."""
+    """The one input check of every extractor: HxW, HxWx1 or HxWx3 (RGB), at least 16x16, uint8, or float with
+    finite values in [0, 1]; returns it unchanged, or raises InputError naming what is wrong."""
     if not isinstance(image, np.ndarray):
-        raise TypeError(f"image must be a numpy array, got {type(image).__name__}.")
+        raise InputError(f"image must be a numpy array, got {type(image).__name__}.")
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3)):
-        raise ValueError(f"image must be HxW or HxWx3, got shape {image.shape}.")
+        raise InputError(f"image must be HxW or HxWx3 (RGB), got shape {image.shape}.")
     if image.dtype != np.uint8 and not np.issubdtype(image.dtype, np.floating):
-        raise ValueError(f"image must be uint8 or float in [0, 1], got dtype {image.dtype}.")
+        raise InputError(f"image must be uint8 or float in [0, 1], got dtype {image.dtype}.")
     if min(image.shape[:2]) < 16:
-        raise ValueError(f"image must be at least 16x16 pixels, got {image.shape[:2]}.")
+        raise InputError(f"image must be at least 16x16 pixels, got {image.shape[:2]}.")
+    if image.dtype != np.uint8:
+        if not np.isfinite(image).all():
+            raise InputError(f"image contains {np.count_nonzero(~np.isfinite(image))} NaN or infinite value(s).")
+        lo, hi = float(image.min()), float(image.max())
+        if lo < -FLOAT_RANGE_TOLERANCE or hi > 1 + FLOAT_RANGE_TOLERANCE:
+            raise InputError(f"float image must lie in [0, 1], got values in [{lo:.4g}, {hi:.4g}] "
+                             f"(divide 8-bit data by 255).")
     return image
 
 
 def to_float_rgb(image: np.ndarray) -> np.ndarray:
     """HxWx3 float32 RGB in [0, 1] from any accepted input (grey is replicated)."""
     image = check_image(image)
-    out = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32)
+    out = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else np.clip(image.astype(np.float32), 0, 1)
     if out.ndim == 2:
         out = out[..., None]
     if out.shape[2] == 1:

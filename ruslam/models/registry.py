@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ruslam.models.extractor import Extractor
+from ruslam.errors import InputError, MissingWeights
+
+if TYPE_CHECKING:  # the registry itself stays light: a config check reads EXTRACTORS without importing torch
+    from ruslam.models.extractor import Extractor
 
 # name -> "module:Class"; imported lazily so that e.g. ORB does not import torch models.
 EXTRACTORS = {
@@ -33,8 +37,8 @@ def load_extractor(name_or_path: str | Path, device: str = "cpu", **conf) -> Ext
     path = Path(key)
     if path.suffix in (".pt", ".pth", ".ckpt"):
         if not path.is_file():
-            raise FileNotFoundError(f"Extractor weights file {path} does not exist.")
+            raise MissingWeights(f"Extractor weights file {path} does not exist.")
         from ruslam.models.uwnet_extractor import UWNetExtractor  # noqa: PLC0415 (optional heavy import)
 
         return UWNetExtractor.from_file(path, device=device, **conf)
-    raise ValueError(f"Unknown extractor {key!r}; expected a weights file or one of {sorted(EXTRACTORS)}.")
+    raise InputError(f"Unknown extractor {key!r}; expected a weights file or one of {sorted(EXTRACTORS)}.")

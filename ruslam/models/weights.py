@@ -16,6 +16,8 @@ from urllib.parse import urlparse
 import torch
 import torch.nn as nn
 
+from ruslam.errors import InputError, MissingWeights
+
 CACHE_ENV = "RUSLAM_CACHE"
 
 
@@ -46,7 +48,7 @@ def resolve_weights(source: str | Path, sha256: str | None = None, cache_dir: st
     if not _is_url(source):
         path = Path(source).expanduser()
         if not path.is_file():
-            raise FileNotFoundError(f"Weights file {path} does not exist.")
+            raise MissingWeights(f"Weights file {path} does not exist.")
         _check_hash(path, sha256)
         return path
     cache = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
@@ -62,7 +64,7 @@ def resolve_weights(source: str | Path, sha256: str | None = None, cache_dir: st
         _check_hash(tmp, sha256, shown_as=source)
     except OSError as err:  # URLError, timeouts and disk errors are all OSErrors
         tmp.unlink(missing_ok=True)
-        raise OSError(
+        raise MissingWeights(
             f"Could not download weights from {source} ({err}); fetch the file on a machine with internet and put "
             f"it at {target} (or pass its local path)."
         ) from None
@@ -78,7 +80,7 @@ def _check_hash(path: Path, sha256: str | None, shown_as: str | None = None) -> 
         return
     actual = sha256_of(path)
     if actual != sha256.lower():
-        raise ValueError(f"Weights file {shown_as or path} has sha256 {actual}, expected {sha256}.")
+        raise InputError(f"Weights file {shown_as or path} has sha256 {actual}, expected {sha256}.")
 
 
 def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
@@ -86,14 +88,14 @@ def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 (any unpickling failure is reported the same way)
-        raise ValueError(
+        raise InputError(
             f"Weights file {path} is not a readable weights-only torch checkpoint ({type(err).__name__}: "
             f"{str(err).splitlines()[0] if str(err) else ''}); save just the state dict with torch.save."
         ) from None
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]
     if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
-        raise ValueError(f"Weights file {path} does not hold a state dict (a dict of name -> tensor).")
+        raise InputError(f"Weights file {path} does not hold a state dict (a dict of name -> tensor).")
     return obj
 
 
@@ -113,7 +115,7 @@ def load_strict(module: nn.Module, state: dict[str, torch.Tensor], source: str |
             f"unexpected keys {unexpected}" if unexpected else "",
             f"wrong shapes {shapes}" if shapes else "",
         ]
-        raise ValueError(
+        raise InputError(
             f"Weights file {source} does not match {type(module).__name__}: " + "; ".join(p for p in parts if p) + "."
         )
     module.load_state_dict(state, strict=True)

@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 import yaml
 
+from ruslam.errors import InputError, MissingInput
+
 MODELS = ("pinhole", "fisheye")
 # OpenCV's default of 5 fixed iterations leaves ~5 mpx error at the corners of strongly distorted EuRoC images.
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
@@ -34,14 +36,14 @@ class Camera:
 
     def __post_init__(self):
         if self.model not in MODELS:
-            raise ValueError(f"Camera model must be one of {MODELS}, got {self.model!r}.")
+            raise InputError(f"Camera model must be one of {MODELS}, got {self.model!r}.")
         self.dist = np.asarray(self.dist, dtype=np.float64).ravel()
         if self.model == "fisheye" and self.dist.size != 4:
-            raise ValueError(f"A fisheye (Kannala-Brandt) camera needs 4 coefficients k1..k4, got {self.dist.size}.")
+            raise InputError(f"A fisheye (Kannala-Brandt) camera needs 4 coefficients k1..k4, got {self.dist.size}.")
         if self.model == "pinhole" and self.dist.size not in (0, 4, 5, 8):
-            raise ValueError(f"A pinhole camera needs 0, 4, 5 or 8 distortion coefficients, got {self.dist.size}.")
+            raise InputError(f"A pinhole camera needs 0, 4, 5 or 8 distortion coefficients, got {self.dist.size}.")
         if self.width <= 0 or self.height <= 0 or self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"Camera size and focal lengths must be positive, got {self.width}x{self.height}, "
+            raise InputError(f"Camera size and focal lengths must be positive, got {self.width}x{self.height}, "
                              f"fx={self.fx}, fy={self.fy}.")
 
     @property
@@ -94,11 +96,11 @@ class Camera:
         """Build from our calibration dict (``model, width, height, intrinsics [fx fy cx cy], distortion``)."""
         missing = [k for k in ("width", "height", "intrinsics") if k not in d]
         if missing:
-            raise ValueError(f"{source} lacks {missing}; expected keys model, width, height, "
+            raise InputError(f"{source} lacks {missing}; expected keys model, width, height, "
                              "intrinsics: [fx, fy, cx, cy], distortion: [...].")
         intr = list(d["intrinsics"])
         if len(intr) != 4:
-            raise ValueError(f"{source}: intrinsics must be [fx, fy, cx, cy], got {intr}.")
+            raise InputError(f"{source}: intrinsics must be [fx, fy, cx, cy], got {intr}.")
         model = {"radtan": "pinhole", "radial-tangential": "pinhole", "equidistant": "fisheye",
                  "kannalabrandt8": "fisheye", "kannala-brandt": "fisheye"}.get(str(d.get("model", "pinhole")).lower(),
                                                                                  str(d.get("model", "pinhole")).lower())
@@ -118,7 +120,7 @@ def read_yaml(path: str | Path) -> dict:
     """Plain or OpenCV-flavoured yaml (leading ``%YAML:1.0`` line) -> dict, with one clear error when unusable."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"Calibration file {path} does not exist.")
+        raise MissingInput(f"Calibration file {path} does not exist.")
     text = path.read_text()
     if text.startswith("%YAML"):
         text = text.split("\n", 1)[1] if "\n" in text else ""
@@ -126,9 +128,9 @@ def read_yaml(path: str | Path) -> dict:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        raise ValueError(f"Calibration file {path} is not valid YAML ({err.__class__.__name__}).") from None
+        raise InputError(f"Calibration file {path} is not valid YAML ({err.__class__.__name__}).") from None
     if not isinstance(data, dict):
-        raise ValueError(f"Calibration file {path} must hold a mapping of keys, got {type(data).__name__}.")
+        raise InputError(f"Calibration file {path} must hold a mapping of keys, got {type(data).__name__}.")
     return data
 
 
@@ -142,4 +144,4 @@ def _from_orbslam(d: dict, source: str) -> Camera:
                       float(d["Camera.cx"]), float(d["Camera.cy"]), dist=dist,
                       model="fisheye" if fisheye else "pinhole")
     except KeyError as err:
-        raise ValueError(f"{source} lacks {err.args[0]} (ORB-SLAM3 camera settings).") from None
+        raise InputError(f"{source} lacks {err.args[0]} (ORB-SLAM3 camera settings).") from None

@@ -17,12 +17,13 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ruslam.errors import InputError, MissingInput
 from ruslam.slam.camera import Camera, read_yaml
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
 
-class FrameReadError(ValueError):
+class FrameReadError(InputError):
     """A frame file is missing or cannot be decoded; the SLAM may skip the frame with a warning."""
 
 
@@ -64,16 +65,16 @@ class Sequence:
     def __post_init__(self):
         self.timestamps = np.asarray(self.timestamps, dtype=np.float64).ravel()
         if len(self.image_paths) == 0:
-            raise ValueError(f"Sequence {self.name!r} has no frames.")
+            raise InputError(f"Sequence {self.name!r} has no frames.")
         if len(self.timestamps) != len(self.image_paths):
-            raise ValueError(f"Sequence {self.name!r}: {len(self.timestamps)} timestamps for "
+            raise InputError(f"Sequence {self.name!r}: {len(self.timestamps)} timestamps for "
                              f"{len(self.image_paths)} frames.")
         if np.any(np.diff(self.timestamps) <= 0):
-            raise ValueError(f"Sequence {self.name!r}: timestamps must increase strictly.")
+            raise InputError(f"Sequence {self.name!r}: timestamps must increase strictly.")
         if any(len(p) != len(self.cameras) for p in self.image_paths):
-            raise ValueError(f"Sequence {self.name!r}: every frame needs one image per camera ({len(self.cameras)}).")
+            raise InputError(f"Sequence {self.name!r}: every frame needs one image per camera ({len(self.cameras)}).")
         if len(self.cameras) == 2 and self.T_cam0_cam1 is None:
-            raise ValueError(f"Stereo sequence {self.name!r} needs T_cam0_cam1.")
+            raise InputError(f"Stereo sequence {self.name!r} needs T_cam0_cam1.")
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -113,7 +114,7 @@ def pose_matrix(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
 def _numeric_rows(path: Path, delimiter: str | None, min_cols: int) -> np.ndarray:
     """Numeric table of a text file, skipping comment/header lines; one clear error otherwise."""
     if not path.is_file():
-        raise FileNotFoundError(f"File {path} does not exist.")
+        raise MissingInput(f"File {path} does not exist.")
     rows = []
     for line in path.read_text().splitlines():
         line = line.strip()
@@ -124,10 +125,10 @@ def _numeric_rows(path: Path, delimiter: str | None, min_cols: int) -> np.ndarra
             rows.append([float(p) for p in parts])
         except ValueError:
             if rows:
-                raise ValueError(f"{path}: non-numeric row {line[:60]!r}.") from None
+                raise InputError(f"{path}: non-numeric row {line[:60]!r}.") from None
             continue  # a header row
     if not rows or min(len(r) for r in rows) < min_cols:
-        raise ValueError(f"{path} holds no rows of at least {min_cols} numbers.")
+        raise InputError(f"{path} holds no rows of at least {min_cols} numbers.")
     return np.array([r[:min_cols] for r in rows])
 
 
@@ -167,24 +168,24 @@ def _euroc_camera(cam_dir: Path) -> tuple[Camera, np.ndarray]:
         camera = Camera(*map(int, sensor["resolution"]), *map(float, sensor["intrinsics"]),
                         dist=sensor.get("distortion_coefficients", [0, 0, 0, 0]), model=model)
     except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{cam_dir / 'sensor.yaml'} lacks a usable T_BS/resolution/intrinsics ({err}).") from None
+        raise InputError(f"{cam_dir / 'sensor.yaml'} lacks a usable T_BS/resolution/intrinsics ({err}).") from None
     return camera, T_BS
 
 
 def _euroc_images(cam_dir: Path) -> dict[int, Path]:
     path = cam_dir / "data.csv"
     if not path.is_file():
-        raise FileNotFoundError(f"EuRoC image list {path} does not exist (expected mav0/camX/data.csv).")
+        raise MissingInput(f"EuRoC image list {path} does not exist (expected mav0/camX/data.csv).")
     out = {}
     with path.open() as f:
         for row in csv.reader(f):
             if not row or row[0].lstrip().startswith("#"):
                 continue
             if len(row) < 2 or not row[0].strip().isdigit():
-                raise ValueError(f"{path}: expected rows 'timestamp_ns,filename', got {','.join(row)[:60]!r}.")
+                raise InputError(f"{path}: expected rows 'timestamp_ns,filename', got {','.join(row)[:60]!r}.")
             out[int(row[0])] = cam_dir / "data" / row[1].strip()
     if not out:
-        raise ValueError(f"EuRoC image list {path} lists no images.")
+        raise InputError(f"EuRoC image list {path} lists no images.")
     return out
 
 
@@ -193,7 +194,7 @@ def read_euroc(root: str | Path, stereo: bool = True, name: str | None = None) -
     root = Path(root)
     mav0 = root / "mav0" if (root / "mav0").is_dir() else root
     if not (mav0 / "cam0").is_dir():
-        raise FileNotFoundError(f"{root} is not a EuRoC sequence: {mav0 / 'cam0'} does not exist.")
+        raise MissingInput(f"{root} is not a EuRoC sequence: {mav0 / 'cam0'} does not exist.")
     cam_ids = ["cam0", "cam1"] if stereo else ["cam0"]
     cams, T_BS, images = [], [], []
     for cid in cam_ids:
@@ -203,7 +204,7 @@ def read_euroc(root: str | Path, stereo: bool = True, name: str | None = None) -
         images.append(_euroc_images(mav0 / cid))
     stamps = sorted(set.intersection(*(set(im) for im in images)))
     if not stamps:
-        raise ValueError(f"{mav0}: cam0 and cam1 share no timestamps.")
+        raise InputError(f"{mav0}: cam0 and cam1 share no timestamps.")
     gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt = read_euroc_groundtruth(gt_path, T_BS[0]) if gt_path.is_file() else None
     return Sequence(name=name or (root.name if root.name != "mav0" else root.parent.name), cameras=cams,
@@ -230,12 +231,12 @@ def read_aqualoc(root: str | Path, site: str = "harbor", groundtruth: str | Path
     """
     root = Path(root)
     if site not in AQUALOC_CAMERAS:
-        raise ValueError(f"AQUALOC site must be one of {sorted(AQUALOC_CAMERAS)}, got {site!r}.")
+        raise InputError(f"AQUALOC site must be one of {sorted(AQUALOC_CAMERAS)}, got {site!r}.")
     if not root.is_dir():
-        raise FileNotFoundError(f"AQUALOC sequence folder {root} does not exist.")
+        raise MissingInput(f"AQUALOC sequence folder {root} does not exist.")
     csvs = sorted(p for p in root.rglob("*.csv") if "img" in p.name.lower())
     if not csvs:
-        raise FileNotFoundError(f"{root} holds no AQUALOC image list (a '*img*sequence*.csv' file).")
+        raise MissingInput(f"{root} holds no AQUALOC image list (a '*img*sequence*.csv' file).")
     list_path = csvs[0]
     stamps, names = [], []
     with list_path.open() as f:
@@ -244,11 +245,11 @@ def read_aqualoc(root: str | Path, site: str = "harbor", groundtruth: str | Path
                 stamps.append(int(row[0]))
                 names.append(row[1].strip())
     if not names:
-        raise ValueError(f"AQUALOC image list {list_path} has no 'timestamp_ns,image_name' rows.")
+        raise InputError(f"AQUALOC image list {list_path} has no 'timestamp_ns,image_name' rows.")
     folders = [list_path.parent] + sorted(d for d in root.rglob("*") if d.is_dir() and "image" in d.name.lower())
     folder = next((d for d in folders if (d / names[0]).is_file()), None)
     if folder is None:
-        raise FileNotFoundError(f"AQUALOC image {names[0]} (first row of {list_path}) is in none of "
+        raise MissingInput(f"AQUALOC image {names[0]} (first row of {list_path}) is in none of "
                                 f"{[str(d) for d in folders]}.")
     camera = Camera.from_yaml(calibration) if calibration else AQUALOC_CAMERAS[site]
     timestamps = np.array(stamps, dtype=np.float64) * 1e-9
@@ -260,7 +261,7 @@ def read_aqualoc(root: str | Path, site: str = "harbor", groundtruth: str | Path
         a = _numeric_rows(Path(groundtruth), None, 8)
         index = np.rint(a[:, 0]).astype(int)
         if index.min() < 0 or index.max() >= len(timestamps):
-            raise ValueError(f"Ground truth {groundtruth} indexes image {index.max()} but {list_path} lists "
+            raise InputError(f"Ground truth {groundtruth} indexes image {index.max()} but {list_path} lists "
                              f"{len(timestamps)} images.")
         gt = Trajectory(timestamps[index], pose_matrix(a[:, 1:4], a[:, 4:8]))
     return Sequence(name=name or root.name, cameras=[camera], timestamps=timestamps,
@@ -282,7 +283,7 @@ def read_tum(root: str | Path, calibration: str | Path | None = None, name: str 
     root = Path(root)
     list_path = root / "rgb.txt"
     if not list_path.is_file():
-        raise FileNotFoundError(f"{root} is not a TUM RGB-D sequence: {list_path} does not exist.")
+        raise MissingInput(f"{root} is not a TUM RGB-D sequence: {list_path} does not exist.")
     stamps, paths = [], []
     for line in list_path.read_text().splitlines():
         parts = line.split()
@@ -290,13 +291,13 @@ def read_tum(root: str | Path, calibration: str | Path | None = None, name: str 
             stamps.append(float(parts[0]))
             paths.append([root / parts[1]])
     if not paths:
-        raise ValueError(f"TUM image list {list_path} lists no images.")
+        raise InputError(f"TUM image list {list_path} lists no images.")
     if calibration:
         camera = Camera.from_yaml(calibration)
     else:
         key = next((k for k in TUM_CAMERAS if k in root.name), None)
         if key is None:
-            raise ValueError(f"Cannot tell the TUM camera of {root.name!r} (no 'freiburg1/2/3' in the name); "
+            raise InputError(f"Cannot tell the TUM camera of {root.name!r} (no 'freiburg1/2/3' in the name); "
                              "pass calibration=<yaml>.")
         camera = TUM_CAMERAS[key]
     gt_path = root / "groundtruth.txt"
@@ -313,13 +314,13 @@ def read_image_folder(root: str | Path, calibration: str | Path | None = None, f
     intrinsics, distortion, optional fps). Timestamps: numeric file stems (ns if > 1e12), else frame / fps."""
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"Image folder {root} does not exist.")
+        raise MissingInput(f"Image folder {root} does not exist.")
     files = sorted((p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
     if not files:
-        raise ValueError(f"Image folder {root} holds no images ({', '.join(IMAGE_SUFFIXES)}).")
+        raise InputError(f"Image folder {root} holds no images ({', '.join(IMAGE_SUFFIXES)}).")
     calibration = Path(calibration) if calibration else root / "calibration.yaml"
     if not calibration.is_file():
-        raise FileNotFoundError(f"Calibration file {calibration} does not exist; write one with keys model, width, "
+        raise MissingInput(f"Calibration file {calibration} does not exist; write one with keys model, width, "
                                 "height, intrinsics: [fx, fy, cx, cy], distortion: [...].")
     camera = Camera.from_yaml(calibration)
     fps = fps or read_yaml(calibration).get("fps") or 20.0

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ruslam.errors import InputError, MissingInput
 from ruslam.slam.camera import Camera
 from ruslam.slam.readers import Sequence, read_euroc
 
@@ -363,7 +364,7 @@ def degrade_level(cfg: SeafloorConfig, clean: Path, level: WaterLevel, out: Path
             image = cv2.imread(str(clean / "mav0" / f"cam{c}" / "data" / f"{stamp}.png"), cv2.IMREAD_COLOR)
             rng = cv2.imread(str(clean / "mav0" / f"depth{c}" / "data" / f"{stamp}.png"), cv2.IMREAD_UNCHANGED)
             if image is None or rng is None:
-                raise FileNotFoundError(f"Clean frame {stamp} of {clean} is missing; delete {clean} to re-render.")
+                raise MissingInput(f"Clean frame {stamp} of {clean} is missing; delete {clean} to re-render.")
             rgb.append(image[..., ::-1].astype(np.float32) / 255.0)
             depth.append(rng.astype(np.float32) / DEPTH_SCALE)
         gen = [image_generator(cfg.seed, n_cams * i + c) for c in range(n_cams)]
@@ -385,7 +386,7 @@ def synthetic_sequence(level: str = "clear", stereo: bool = False, cache_dir: st
     generated into ``cache_dir`` on first use and then read back with `read_euroc`."""
     levels = {**LEVELS, **{k: v if isinstance(v, WaterLevel) else WaterLevel(**v) for k, v in (levels or {}).items()}}
     if level not in levels:
-        raise ValueError(f"Unknown synthetic water level {level!r}; expected one of {sorted(levels)}.")
+        raise InputError(f"Unknown synthetic water level {level!r}; expected one of {sorted(levels)}.")
     cfg = SeafloorConfig(stereo=stereo, **{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})
     base = Path(cache_dir or default_cache_dir()) / f"seafloor_{cfg.key()}"
     base.mkdir(parents=True, exist_ok=True)
@@ -394,6 +395,6 @@ def synthetic_sequence(level: str = "clear", stereo: bool = False, cache_dir: st
     folder = clean if spec.water is None and spec == WaterLevel() else base / f"{level}_{spec.key()}"
     if folder != clean:
         if spec.water is None:
-            raise ValueError(f"Synthetic level {level!r} needs a Jerlov water type (water=...).")
+            raise InputError(f"Synthetic level {level!r} needs a Jerlov water type (water=...).")
         degrade_level(cfg, clean, spec, folder, progress=progress)
     return read_euroc(folder, stereo=stereo, name=f"seafloor_{level}")

@@ -22,6 +22,7 @@ from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, proj
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, Map, inverse_pose
+from ruslam.slam.readers import FrameReadError
 from ruslam.slam.tracking import Tracker, TrackingConfig
 
 log = logging.getLogger(__name__)
@@ -193,14 +194,10 @@ def _load_frame(i, sequence, extractor, stereo, cfg) -> Frame | None:
     """Frame i, or None (with a warning) when it cannot be read or has too few features."""
     try:
         images = sequence.load(i)
-    except (OSError, ValueError) as err:  # readers raise FrameReadError(ValueError) for corrupt/missing files
+    except FrameReadError as err:  # the one expected condition: a missing or undecodable frame file
         log.warning("Frame %d skipped: %s", i, err)
         return None
-    try:
-        frame = make_frame(i, sequence.timestamps[i], images, extractor, sequence, stereo, cfg)
-    except (ValueError, TypeError) as err:  # extractor contract violations (wrong shape/dtype)
-        log.warning("Frame %d skipped: %s", i, err)
-        return None
+    frame = make_frame(i, sequence.timestamps[i], images, extractor, sequence, stereo, cfg)
     if frame is None:
         log.warning("Frame %d skipped: fewer than %d keypoints (black or featureless image).", i,
                     cfg.tracking.min_keypoints)

@@ -20,6 +20,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
+from ruslam.errors import InputError
 from ruslam.training.augment import seeded_generator, warp_image, warp_targets
 
 
@@ -117,7 +118,7 @@ class DistillationDataModule(pl.LightningDataModule):
         self.limit_images = limit_images
         self.image_size = tuple(image_size) if image_size else None
         if self.image_size and (len(self.image_size) != 2 or self.image_size[0] % 8 or self.image_size[1] % 8):
-            raise ValueError(f"image_size must be [height, width], multiples of 8; got {list(self.image_size)}.")
+            raise InputError(f"image_size must be [height, width], multiples of 8; got {list(self.image_size)}.")
         # Targets depend on the source and the resolution, not on how many images are used: a longer run with a
         # larger limit_images reuses (and extends) the same cache.
         self.cache_config = {"source": self.source_conf, "image_size": self.image_size}
@@ -132,7 +133,7 @@ class DistillationDataModule(pl.LightningDataModule):
         if self._source_cache is None:  # rendered/read once per process, shared by the teacher cache and training
             source = PreparedSource(instantiate(self.source_conf), self.limit_images, self.image_size, self.preload)
             if self.val_overrides is None and len(source) <= self.val_size:
-                raise ValueError(f"The RGB-D source gives {len(source)} images; it needs more than "
+                raise InputError(f"The RGB-D source gives {len(source)} images; it needs more than "
                                  f"val_size={self.val_size}.")
             self._source_cache = source
         return self._source_cache
@@ -162,7 +163,7 @@ class DistillationDataModule(pl.LightningDataModule):
         source = self._source()
         first = source[0]["image"]
         if first.shape[0] % 8 or first.shape[1] % 8:
-            raise ValueError(f"Training images must have height and width multiples of 8, got {first.shape[:2]}.")
+            raise InputError(f"Training images must have height and width multiples of 8, got {first.shape[:2]}.")
         cache = TeacherCache(self.cache_dir)
         val_source = self._val_source()
         if val_source is None:

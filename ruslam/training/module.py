@@ -7,14 +7,18 @@ from collections.abc import Callable
 import pytorch_lightning as pl
 import torch
 
+from ruslam.errors import InputError
 from ruslam.models.distillation_loss import DistillationLoss
 from ruslam.models.uwnet import UWNet
 
 TARGET_KEYS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
 
 
-class NonFiniteLossError(FloatingPointError):
-    """Raised when the distillation loss becomes NaN or infinite, so training stops instead of wasting hours."""
+class NonFiniteLossError(InputError, FloatingPointError):
+    """Raised when the distillation loss becomes NaN or infinite, so training stops instead of wasting hours.
+
+    An input error for the entry point: the run's settings (learning rate, data) made it diverge, which the user
+    fixes; the sentence names the epoch and step."""
 
 
 class DistillationModule(pl.LightningModule):
@@ -40,7 +44,7 @@ class DistillationModule(pl.LightningModule):
         want = self.net.config["descriptor_dim"]
         got = batch["dense_descriptors"].shape[1]
         if got != want:
-            raise ValueError(f"The teacher targets have {got}-d local descriptors but the student is built with "
+            raise InputError(f"The teacher targets have {got}-d local descriptors but the student is built with "
                              f"descriptor_dim={want}; set model.net.descriptor_dim={got}.")
 
     def on_train_epoch_start(self) -> None:

@@ -19,6 +19,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 import torchvision
 
+from ruslam.errors import MissingWeights
 from ruslam.models.netvlad import NetVLAD
 from ruslam.models.weights import load_state_dict, load_strict, resolve_weights
 
@@ -46,7 +47,7 @@ class NetVLADTeacher(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD)[:, None, None], persistent=False)
         if load:
             if weights is None:
-                raise FileNotFoundError(
+                raise MissingWeights(
                     "NetVLADTeacher needs user-supplied weights (pytorch-NetVLAD / Patch-NetVLAD layout, e.g. "
                     "pittsburgh_WPCA4096.pth.tar): pass weights=<path or URL>."
                 )

@@ -15,6 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ruslam.errors import MissingWeights
 from ruslam.models.extractor import Extractor, cell_logits_to_heatmap, detect_keypoints, sample_descriptors, to_gray
 from ruslam.models.weights import default_cache_dir, load_state_dict, load_strict, resolve_weights
 
@@ -51,7 +52,7 @@ def load_superpoint_net(weights: str | None, sha256: str | None = None, cache_di
     if weights is None:
         cached = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "superpoint_v1.pth"
         if not cached.is_file():
-            raise FileNotFoundError(
+            raise MissingWeights(
                 f"SuperPoint needs the magicleap superpoint_v1.pth weights: put the file at {cached} or pass "
                 f"weights=<path or URL> (e.g. {MAGICLEAP_URL})."
             )

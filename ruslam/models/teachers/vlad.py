@@ -22,6 +22,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy.cluster.vq import kmeans2
 
+from ruslam.data.rgbd_sample import sample_image
+from ruslam.errors import InputError, MissingInput
+
 PACKAGED_XFEAT_CODEBOOK = Path(__file__).with_name("vlad_xfeat_k64.npy")
 
 
@@ -29,7 +32,7 @@ def fit_codebook(descriptors: np.ndarray, num_clusters: int = 64, seed: int = 0,
     """k-means centres [K, D] (float32) of descriptors [N, D]; deterministic for a given seed."""
     descriptors = np.asarray(descriptors, dtype=np.float64)
     if descriptors.ndim != 2 or len(descriptors) < num_clusters:
-        raise ValueError(
+        raise InputError(
             f"k-means needs at least {num_clusters} descriptors as an [N, D] array, got shape {descriptors.shape}."
         )
     centres, _ = kmeans2(descriptors, num_clusters, iter=iterations, minit="++", seed=seed)
@@ -39,13 +42,13 @@ def fit_codebook(descriptors: np.ndarray, num_clusters: int = 64, seed: int = 0,
 def load_codebook(path: str | Path, num_clusters: int, dim: int) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"VLAD codebook {path} does not exist.")
+        raise MissingInput(f"VLAD codebook {path} does not exist.")
     try:
         codebook = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as err:
-        raise ValueError(f"VLAD codebook {path} is not a readable .npy array ({err}).") from None
+        raise InputError(f"VLAD codebook {path} is not a readable .npy array ({err}).") from None
     if codebook.shape != (num_clusters, dim) or not np.isfinite(codebook).all():
-        raise ValueError(f"VLAD codebook {path} has shape {codebook.shape}, expected finite ({num_clusters}, {dim}).")
+        raise InputError(f"VLAD codebook {path} has shape {codebook.shape}, expected finite ({num_clusters}, {dim}).")
     return codebook.astype(np.float32)
 
 
@@ -126,18 +129,11 @@ class VLAD(nn.Module):
         if path.is_file():
             self.set_codebook(load_codebook(path, self.num_clusters, self.dim))
             return
-        images = (checked_image(dataset[int(i)]) for i in sample_indices(len(dataset), self.fit_images, self.seed))
+        images = (sample_image(dataset[int(i)]) for i in sample_indices(len(dataset), self.fit_images, self.seed))
         descriptors = dense_descriptor_sample(local, images, self.fit_descriptors_per_image, self.seed)
         self.set_codebook(fit_codebook(descriptors, self.num_clusters, self.seed))
         save_codebook(self.codebook.numpy(), path)
 
-
-def checked_image(item: dict) -> np.ndarray:
-    image = item.get("image")
-    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or not np.isfinite(image).all():
-        shape = getattr(image, "shape", type(image).__name__)
-        raise ValueError(f"Image {item.get('id')!r} is unreadable: expected a finite HxWx3 array, got {shape}.")
-    return image
 
 
 def sample_indices(n: int, count: int, seed: int) -> np.ndarray:
