@@ -13,7 +13,7 @@ from urllib.parse import urlparse
 from hydra.errors import InstantiationException
 from hydra.utils import get_method
 from hydra.utils import instantiate as hydra_instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ruslam.cli import input_error_of, missing_value_message
 from ruslam.errors import InputError, MissingInput, MissingWeights
@@ -24,9 +24,21 @@ SLAM_SENSORS = ("auto", "mono", "stereo")
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
 
 
+def missing_keys(cfg, prefix: str = "") -> list[str]:
+    """Full keys of the ``???`` values, found without resolving interpolations (which would fail on them)."""
+    keys = cfg.keys() if isinstance(cfg, DictConfig) else range(len(cfg))
+    out = []
+    for key in keys:
+        if OmegaConf.is_missing(cfg, key):
+            out.append(f"{prefix}{key}")
+        elif not OmegaConf.is_interpolation(cfg, key) and isinstance(cfg[key], DictConfig | ListConfig):
+            out += missing_keys(cfg[key], f"{prefix}{key}.")
+    return out
+
+
 def require_set(cfg: DictConfig) -> None:
     """Every ``???`` value is set; else the first is named with how to set it."""
-    missing = sorted(OmegaConf.missing_keys(cfg))
+    missing = missing_keys(cfg)
     if missing:
         more = f" ({len(missing) - 1} more unset: {', '.join(missing[1:])})" if len(missing) > 1 else ""
         raise InputError(missing_value_message(missing[0]) + more)
@@ -127,10 +139,13 @@ def check_matching(cfg: DictConfig) -> None:
         raise InputError(f"task.headline_threshold={float(task.headline_threshold):g} must be one of "
                          f"task.thresholds {thresholds}.")
     require_path(cfg, "dataset.root", "folder")
-    if str(cfg.dataset.get("_target_", "")).endswith("upatches_from_folder"):
+    target = str(cfg.dataset.get("_target_", ""))
+    if target.endswith("upatches_from_folder"):  # enough images in the folder (the build itself writes files)
         from ruslam.data.upatches import list_folder_images  # noqa: PLC0415
 
         list_folder_images(cfg.dataset.root, cfg.dataset.get("num_images"))
+    elif target.endswith("HPatches"):  # the reader checks the sequence folders in its constructor
+        instantiate({k: v for k, v in OmegaConf.to_container(cfg.dataset, resolve=True).items() if k != "label"})
 
 
 def check_slam(cfg: DictConfig) -> None:

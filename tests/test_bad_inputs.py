@@ -1,0 +1,113 @@
+"""Every row of docs/ERRORS.md, checked against what the code now does.
+
+A command row (`python train.py ...`, `python evaluate.py ...`) must exit 2 with exactly one stderr line,
+``error: <the documented sentence>``, no traceback and no file written; a Python row must raise
+`ruslam.errors.InputError` with the documented sentence. In the table, ``$TMP`` is a scratch folder holding
+``empty/`` (an empty folder), ``not_weights.pt`` and ``not_a_mat.mat`` (text files), and ``…`` stands for any text
+(lists that grow when an extractor is registered). The fast test runs the command rows in this process through
+the same `run_cli`; the slow one runs the real entry points in subprocesses.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT, compose
+
+from ruslam.cli import run_cli
+from ruslam.errors import InputError
+
+ERRORS_MD = ROOT / "docs" / "ERRORS.md"
+ROW = re.compile(r"^\| (\d+) \| `(.+?)` \| ``(.+)`` \|$")
+
+
+def table_rows() -> list[tuple[str, str, str]]:
+    rows = [ROW.match(line) for line in ERRORS_MD.read_text().splitlines()]
+    return [(m[1], m[2], m[3]) for m in rows if m]
+
+
+ROWS = table_rows()
+COMMANDS = [r for r in ROWS if r[1].startswith("python ")]
+CALLS = [r for r in ROWS if not r[1].startswith("python ")]
+
+
+def matches(documented: str, actual: str, tmp: Path) -> bool:
+    pattern = ".*".join(re.escape(part) for part in documented.replace("$TMP", str(tmp)).split("…"))
+    return re.fullmatch(pattern, actual, re.DOTALL) is not None
+
+
+@pytest.fixture
+def scratch(tmp_path, monkeypatch) -> Path:
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "not_weights.pt").write_text("not a torch file\n")
+    (tmp_path / "not_a_mat.mat").write_text("not a MATLAB file\n")
+    for var in ("EUROC_ROOT", "TUM_ROOT", "AQUALOC_HARBOR_ROOT", "AQUALOC_ARCHAEO_ROOT", "RUSLAM_DEBUG"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("RUSLAM_CACHE", str(tmp_path / "cache"))
+    return tmp_path
+
+
+def test_the_table_has_at_least_15_rows_across_entry_points_and_readers():
+    assert len(ROWS) >= 15 and [r[0] for r in ROWS] == [str(i) for i in range(1, len(ROWS) + 1)]
+    kinds = {r[1].split()[1] if r[1].startswith("python ") else r[1].split("(")[0] for r in ROWS}
+    assert {"train.py", "evaluate.py", "load_extractor"} <= kinds
+
+
+def _written(out: Path) -> list[str]:
+    return sorted(str(p.relative_to(out)) for p in out.rglob("*")) if out.exists() else []
+
+
+@pytest.mark.parametrize(("number", "command", "message"), COMMANDS, ids=[r[0] for r in COMMANDS])
+def test_command_row_in_process(number, command, message, scratch, capsys):
+    from ruslam.evaluate import evaluate
+    from ruslam.train import train
+
+    words = shlex.split(command.replace("$TMP", str(scratch)))
+    entry, overrides = words[1], words[2:]
+    out = scratch / "run"
+    cfg = compose(entry.removesuffix(".py"), [*overrides, f"out_dir={out}"])
+    with pytest.raises(SystemExit) as exit_info:
+        run_cli(train if entry == "train.py" else evaluate, cfg)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2
+    assert err.count("\n") == 1 and err.startswith("error: "), err
+    assert matches(message, err[len("error: "):].rstrip("\n"), scratch), err
+    assert [p for p in _written(out)] == [], "a bad input left files behind"
+
+
+@pytest.mark.parametrize(("number", "call", "message"), CALLS, ids=[r[0] for r in CALLS])
+def test_python_row(number, call, message, scratch):
+    from ruslam import load_extractor
+    from ruslam.data.hpatches import HPatches
+    from ruslam.data.nyu import NYUDepthV2
+    from ruslam.data.rgbd_folder import RGBDFolder
+    from ruslam.slam.readers import read_aqualoc, read_euroc, read_image_folder, read_tum
+
+    namespace = dict(np=np, load_extractor=load_extractor, HPatches=HPatches, NYUDepthV2=NYUDepthV2,
+                     RGBDFolder=RGBDFolder, read_euroc=read_euroc, read_tum=read_tum, read_aqualoc=read_aqualoc,
+                     read_image_folder=read_image_folder)
+    with pytest.raises(InputError) as err:
+        eval(call.replace("$TMP", str(scratch)), namespace)  # noqa: S307 (the table's own expressions)
+    assert matches(message, str(err.value), scratch), str(err.value)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("number", "command", "message"), COMMANDS, ids=[r[0] for r in COMMANDS])
+def test_command_row_through_the_entry_point(number, command, message, scratch):
+    words = shlex.split(command.replace("$TMP", str(scratch)))
+    run_dir = scratch / "run"
+    done = subprocess.run([sys.executable, *words[1:], f"hydra.run.dir={run_dir}"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr[-2000:]
+    assert matches(message, lines[0][len("error: "):], scratch), lines[0]
+    # Hydra's own record of the run (.hydra/ and the job log) is all that may exist
+    assert [p for p in _written(run_dir) if not (p.startswith(".hydra") or p.endswith(".log"))] == []
