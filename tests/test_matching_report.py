@@ -50,6 +50,10 @@ def test_folder_run_writes_table_plot_pictures_and_skip_notes(tmp_path):
         o = res["overall"]
         assert 0 <= o["rep"] <= 100 and 0 <= o["ms"] <= 100 and o["mma"] == pytest.approx(o["mma_curve"][2])
         assert np.all(np.diff(o["mma_curve"]) >= 0)  # MMA can only grow with the threshold
+    # the header states the median zoom of the pairs (around 1 with the default builder)
+    zooms = report["zooms"]
+    assert len(zooms) == 6 and 0.7 < np.median(zooms) < 1.3
+    assert f"median zoom {np.median(zooms):.2f}x" in (out / "table.md").read_text().splitlines()[0]
 
 
 def test_unknown_extractor_is_one_sentence_before_any_work(tmp_path):

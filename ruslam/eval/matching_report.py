@@ -74,7 +74,7 @@ def _bin_name(lo, hi) -> str:
 def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path, bins) -> tuple:
     """Run every extractor on every pair (one progress bar over pairs).
 
-    Returns ({name: [PairResult]}, [rotation of each pair], {name: [seconds per image]}, [picture paths]); the
+    Returns ({name: [PairResult]}, [(rotation, zoom) of each pair], {name: [seconds per image]}, [pictures]); the
     first pair met in each rotation bin (at most ``task.num_pictures`` pairs) gets a match picture per extractor.
     """
     thresholds = tuple(task.thresholds)
@@ -85,7 +85,7 @@ def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path,
     (out_dir / "matches").mkdir(parents=True, exist_ok=True)
     for i in tqdm(range(len(dataset)), desc="matching pairs", unit="pair"):
         pair = dataset[i]
-        rotations.append(pair["rotation_deg"])
+        rotations.append((pair["rotation_deg"], pair.get("zoom", float("nan"))))
         b = rotation_bin(pair["rotation_deg"], bins)
         picture = len(pictured_bins) < task.num_pictures and b not in pictured_bins
         for name, extractor in extractors.items():
@@ -192,20 +192,22 @@ def _run(cfg: DictConfig) -> dict:
     if len(dataset) == 0:
         raise ValueError(f"Dataset {title} holds no image pair.")
     if extractors:
-        results, rotations, timings, pictures = evaluate_dataset(dataset, extractors, task, out_dir, bins)
+        results, geometry, timings, pictures = evaluate_dataset(dataset, extractors, task, out_dir, bins)
     else:  # every extractor was skipped: still write the table with the notes
-        results, rotations, timings, pictures = {}, [], {}, []
+        results, geometry, timings, pictures = {}, [], {}, []
+    rotations, zooms = [g[0] for g in geometry], [g[1] for g in geometry]
 
     summary = {n: summarize_by_bin(r, rotations, bins, thresholds, headline) for n, r in results.items()}
     for name in summary:
         summary[name]["seconds_per_image"] = float(np.mean(timings[name]))
-    title = (f"{title}: {len(dataset)} pairs, {task.max_keypoints} keypoints max, Rep./M.S. at "
+    zoom = f", median zoom {np.nanmedian(zooms):.2f}x" if np.isfinite(zooms).any() else ""
+    title = (f"{title}: {len(dataset)} pairs{zoom}, {task.max_keypoints} keypoints max, Rep./M.S. at "
              f"{task.eps:g} px, MMA at {headline:g} px")
     _atomic_write(out_dir / "table.md", markdown_table(title, summary, labels, skipped, bins, headline))
     _atomic_write(out_dir / "table.csv", csv_table(summary, labels, skipped, bins, thresholds))
     curves = {labels.get(n, n): s["overall"]["mma_curve"] for n, s in summary.items() if s["overall"].get("pairs")}
     plot_mma(curves, thresholds, out_dir / "mma_vs_threshold.png", title.split(":")[0])
-    report = {"dataset": title, "pairs": len(dataset), "rotations_deg": rotations, "results": summary,
+    report = {"dataset": title, "pairs": len(dataset), "rotations_deg": rotations, "zooms": zooms, "results": summary,
               "skipped": skipped, "pictures": pictures,
               "files": ["table.md", "table.csv", "mma_vs_threshold.png", "results.json"]}
     _atomic_write(out_dir / "results.json", json.dumps(report, indent=1))
