@@ -26,8 +26,9 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
-from ruslam.eval.matching import PairResult, evaluate_pair, rotation_bin, summarize
+from ruslam.eval.matching import PairResult, cap_keypoints, evaluate_pair, rotation_bin, summarize
 from ruslam.models.registry import EXTRACTORS, load_extractor
+from ruslam.models.rotation_tta import ROTATIONS, extract_rotations, pool
 
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
 
@@ -61,6 +62,19 @@ def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
     return built, skipped
 
 
+def rotation_modes(task: DictConfig) -> list[str]:
+    """``task.rotation_tta``: none, c4, or a list of both (one table row per extractor and mode)."""
+    value = task.get("rotation_tta") or "none"
+    modes = [value] if isinstance(value, str) else list(value)
+    if not modes or any(m not in ("none", "c4") for m in modes) or len(set(modes)) != len(modes):
+        raise ValueError(f"task.rotation_tta must be none, c4 or a list of both, got {value!r}.")
+    return modes
+
+
+def mode_key(name: str, mode: str) -> str:
+    return name if mode == "none" else f"{name}+{mode}"
+
+
 def _atomic_write(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
@@ -74,12 +88,15 @@ def _bin_name(lo, hi) -> str:
 def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path, bins) -> tuple:
     """Run every extractor on every pair (one progress bar over pairs).
 
-    Returns ({name: [PairResult]}, [(rotation, zoom) of each pair], {name: [seconds per image]}, [pictures]); the
-    first pair met in each rotation bin (at most ``task.num_pictures`` pairs) gets a match picture per extractor.
+    Returns ({key: [PairResult]}, [(rotation, zoom) of each pair], {key: [seconds per image 2]}, [pictures]),
+    one key per extractor and rotation mode (`mode_key`); the first pair met in each rotation bin (at most
+    ``task.num_pictures`` pairs) gets a match picture per key. With C4 test-time augmentation, image 1 (shared by
+    the pairs of a sequence) is also extracted at 90/180/270°, each rotation capped to ``task.max_keypoints``.
     """
-    thresholds = tuple(task.thresholds)
-    results = {name: [] for name in extractors}
-    rotations, timings = [], {name: [] for name in extractors}
+    modes = rotation_modes(task)
+    keys = [(name, mode, mode_key(name, mode)) for name in extractors for mode in modes]
+    results = {key: [] for _, _, key in keys}
+    rotations, timings = [], {key: [] for _, _, key in keys}
     reference = {}  # name -> (sequence, features of image 1): image 1 is shared by the pairs of a sequence
     pictured_bins, pictures = set(), []
     (out_dir / "matches").mkdir(parents=True, exist_ok=True)
@@ -90,27 +107,38 @@ def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path,
         picture = len(pictured_bins) < task.num_pictures and b not in pictured_bins
         for name, extractor in extractors.items():
             if reference.get(name, (None,))[0] != pair["sequence"]:
-                reference[name] = (pair["sequence"], extractor.extract(pair["image1"]))
+                parts = extract_rotations(extractor, pair["image1"], ROTATIONS if "c4" in modes else (0,))
+                parts = [cap_keypoints(p, task.max_keypoints) for p in parts]
+                reference[name] = (pair["sequence"], {"none": parts[0], "c4": pool(parts)})
             start = time.perf_counter()
             features2 = extractor.extract(pair["image2"])
-            timings[name].append(time.perf_counter() - start)
-            res = evaluate_pair(
-                reference[name][1], features2, pair["H"], pair["image1"].shape[:2], pair["image2"].shape[:2],
-                binary=getattr(extractor, "binary", False), max_keypoints=task.max_keypoints, eps=task.eps,
-                thresholds=thresholds,
-            )
-            if picture:
-                canvas = draw_matches(pair["image1"], pair["image2"], res.keypoints1, res.keypoints2, res.matches,
-                                      res.match_errors <= task.eps)
-                stem = Path(str(name)).name  # an extractor given as a weights path: named after the file
-                path = out_dir / "matches" / f"{stem}_{pair['name'].replace('/', '_')}.png"
-                write_png(path, canvas)
-                pictures.append(str(path.relative_to(out_dir)))
-            empty = np.zeros((0, 2))
-            results[name].append(replace(res, keypoints1=empty, keypoints2=empty, matches=empty, match_errors=empty))
+            seconds = time.perf_counter() - start
+            for mode in modes:
+                key = mode_key(name, mode)
+                timings[key].append(seconds)
+                results[key].append(_evaluate(reference[name][1][mode], features2, pair, extractor, task, key,
+                                              out_dir, picture, pictures))
         if picture:
             pictured_bins.add(b)
     return results, rotations, timings, pictures
+
+
+def _evaluate(features1, features2, pair, extractor, task, key, out_dir, picture, pictures) -> PairResult:
+    """One pair's metrics (image 1 already capped), its match picture when asked, arrays dropped from the result."""
+    res = evaluate_pair(
+        features1, features2, pair["H"], pair["image1"].shape[:2], pair["image2"].shape[:2],
+        binary=getattr(extractor, "binary", False), max_keypoints=task.max_keypoints, eps=task.eps,
+        thresholds=tuple(task.thresholds), max_keypoints1=0,
+    )
+    if picture:
+        canvas = draw_matches(pair["image1"], pair["image2"], res.keypoints1, res.keypoints2, res.matches,
+                              res.match_errors <= task.eps)
+        stem = Path(str(key)).name  # an extractor given as a weights path: named after the file
+        path = out_dir / "matches" / f"{stem}_{pair['name'].replace('/', '_')}.png"
+        write_png(path, canvas)
+        pictures.append(str(path.relative_to(out_dir)))
+    empty = np.zeros((0, 2))
+    return replace(res, keypoints1=empty, keypoints2=empty, matches=empty, match_errors=empty)
 
 
 def summarize_by_bin(results: list[PairResult], rotations: list[float], bins, thresholds, headline) -> dict:
@@ -182,6 +210,8 @@ def _run(cfg: DictConfig) -> dict:
         raise ValueError(f"task.headline_threshold={headline:g} must be one of task.thresholds {list(thresholds)}.")
     bins = [tuple(b) for b in task.rotation_bins]
     labels = dict(task.get("labels") or {})
+    modes = rotation_modes(task)
+    labels.update({mode_key(n, m): f"{labels.get(n, n)} + C4 TTA" for n in names for m in modes if m != "none"})
     extractors, skipped = resolve_extractors(names, task)
 
     dataset_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
