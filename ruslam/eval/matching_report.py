@@ -75,13 +75,21 @@ def mode_key(name: str, mode: str) -> str:
     return name if mode == "none" else f"{name}+{mode}"
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def row_labels(task: DictConfig, names) -> dict:
+    """Table labels of every extractor and rotation mode (``task.labels``, '+ C4 TTA' for the augmented rows)."""
+    labels = dict(task.get("labels") or {})
+    labels.update({mode_key(n, m): f"{labels.get(n, n)} + C4 TTA" for n in names for m in rotation_modes(task)
+                   if m != "none"})
+    return labels
+
+
+def atomic_write(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
 
 
-def _bin_name(lo, hi) -> str:
+def bin_name(lo, hi) -> str:
     return f"{lo:g}-{hi:g}°"
 
 
@@ -145,12 +153,12 @@ def summarize_by_bin(results: list[PairResult], rotations: list[float], bins, th
     out = {"overall": summarize(results, thresholds, headline)}
     for k, (lo, hi) in enumerate(bins):
         subset = [r for r, a in zip(results, rotations, strict=True) if rotation_bin(a, bins) == k]
-        out[_bin_name(lo, hi)] = summarize(subset, thresholds, headline)
+        out[bin_name(lo, hi)] = summarize(subset, thresholds, headline)
     return out
 
 
 def markdown_table(title: str, summary: dict, labels: dict, skipped: dict, bins, headline) -> str:
-    bin_names = [_bin_name(lo, hi) for lo, hi in bins]
+    bin_names = [bin_name(lo, hi) for lo, hi in bins]
     first = next(iter(summary.values()), None)
     counts = [first[b]["pairs"] if first else 0 for b in bin_names]
     head = ["Method", "%Rep.", "%M.S.", f"%MMA@{headline:g}px"]
@@ -168,7 +176,7 @@ def markdown_table(title: str, summary: dict, labels: dict, skipped: dict, bins,
 
 
 def csv_table(summary: dict, labels: dict, skipped: dict, bins, thresholds) -> str:
-    parts = ["overall"] + [_bin_name(lo, hi) for lo, hi in bins]
+    parts = ["overall"] + [bin_name(lo, hi) for lo, hi in bins]
     header = ["method", "name", "part", "pairs", "rep", "ms", "mma", "keypoints", "matches"]
     header += [f"mma@{t:g}" for t in thresholds] + ["note"]
     buf = io.StringIO()
@@ -209,9 +217,7 @@ def _run(cfg: DictConfig) -> dict:
     if headline not in thresholds:
         raise ValueError(f"task.headline_threshold={headline:g} must be one of task.thresholds {list(thresholds)}.")
     bins = [tuple(b) for b in task.rotation_bins]
-    labels = dict(task.get("labels") or {})
-    modes = rotation_modes(task)
-    labels.update({mode_key(n, m): f"{labels.get(n, n)} + C4 TTA" for n in names for m in modes if m != "none"})
+    labels = row_labels(task, names)
     extractors, skipped = resolve_extractors(names, task)
 
     dataset_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
@@ -233,13 +239,13 @@ def _run(cfg: DictConfig) -> dict:
     zoom = f", median zoom {np.nanmedian(zooms):.2f}x" if np.isfinite(zooms).any() else ""
     title = (f"{title}: {len(dataset)} pairs{zoom}, {task.max_keypoints} keypoints max, Rep./M.S. at "
              f"{task.eps:g} px, MMA at {headline:g} px")
-    _atomic_write(out_dir / "table.md", markdown_table(title, summary, labels, skipped, bins, headline))
-    _atomic_write(out_dir / "table.csv", csv_table(summary, labels, skipped, bins, thresholds))
+    atomic_write(out_dir / "table.md", markdown_table(title, summary, labels, skipped, bins, headline))
+    atomic_write(out_dir / "table.csv", csv_table(summary, labels, skipped, bins, thresholds))
     curves = {labels.get(n, n): s["overall"]["mma_curve"] for n, s in summary.items() if s["overall"].get("pairs")}
     plot_mma(curves, thresholds, out_dir / "mma_vs_threshold.png", title.split(":")[0])
     report = {"dataset": title, "pairs": len(dataset), "rotations_deg": rotations, "zooms": zooms, "results": summary,
               "skipped": skipped, "pictures": pictures,
               "files": ["table.md", "table.csv", "mma_vs_threshold.png", "results.json"]}
-    _atomic_write(out_dir / "results.json", json.dumps(report, indent=1))
+    atomic_write(out_dir / "results.json", json.dumps(report, indent=1))
     print((out_dir / "table.md").read_text())
     return report
