@@ -19,7 +19,8 @@ from ruslam.cli import input_error_of, missing_value_message
 from ruslam.errors import InputError, MissingInput, MissingWeights
 
 #: Columns of the SLAM tables (`dataset.metrics`) and their headers.
-SLAM_METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked"}
+SLAM_METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked", "tracked_after_init": "Tracked after init",
+                "maps": "Maps", "ape_path": "APE % of path", "fps": "fps"}
 SLAM_SENSORS = ("auto", "mono", "stereo")
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
 
