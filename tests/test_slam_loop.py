@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from ruslam.slam.atlas import Atlas
 from ruslam.slam.loop_closing import KeyFrameDatabase, LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, KeyFrame, Map
 
@@ -48,7 +49,7 @@ def test_query_ranks_and_excludes():
 
 def _loop_closer(consistency=3):
     cfg = LoopConfig(min_keyframes=0, exclude_recent=0, consistency=consistency, min_score=0.0)
-    return LoopCloser(Map(), None, cfg, binary=False, stereo=False)
+    return LoopCloser(Atlas(), None, cfg, binary=False, stereo=False)
 
 
 def test_candidate_needs_consecutive_consistent_detections():
@@ -132,8 +133,8 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     # the current (second-pass) keyframes live in a drifted map: similarity D (scale 1.08, 4 deg, 0.25 m)
     D = pose_matrix(se3_exp(np.array([0, 0, np.deg2rad(4), 0, 0, 0]))[:3, :3], [0.25, -0.1, 0.05], s=1.08)
     m = Map()
-    lc = LoopCloser(m, None, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
-    mapper = LocalMapper(m, MappingConfig(), binary=False, loop_closer=lc)
+    lc = LoopCloser(Atlas(m), None, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
+    mapper = LocalMapper(lc.atlas, MappingConfig(), binary=False, loop_closer=lc)
     lc.mapper = mapper
     placeholder = keyframe(np.ones(8))  # points need a creator; the real one is set below
     old_pts = [MapPoint(x, d, placeholder) for x, d in zip(landmarks, desc, strict=True)]

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
@@ -51,11 +52,16 @@ def alive_points(kf: KeyFrame) -> list[MapPoint]:
 
 
 class LocalMapper:
-    def __init__(self, map: Map, cfg: MappingConfig, binary: bool, rig=None, loop_closer=None):
-        self.map, self.cfg, self.binary, self.rig, self.loop_closer = map, cfg, binary, rig, loop_closer
+    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None, loop_closer=None):
+        self.atlas, self.cfg, self.binary, self.rig, self.loop_closer = atlas, cfg, binary, rig, loop_closer
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.recent: list[MapPoint] = []
         self.processed = 0
+
+    @property
+    def map(self) -> Map:
+        """The active map: keyframes of a map left behind (tracking lost) are not mapped any further."""
+        return self.atlas.active
 
     # --- the interface the tracker sees ------------------------------------------------------------------------
     def insert_keyframe(self, kf: KeyFrame) -> None:
@@ -69,8 +75,8 @@ class LocalMapper:
 
     # --- one keyframe ------------------------------------------------------------------------------------------
     def process(self, kf: KeyFrame) -> None:
-        with self.map.lock:
-            if kf.is_bad:
+        with self.atlas.lock:
+            if kf.is_bad or kf.map is not self.map:
                 return
             self._insert(kf)
             self._cull_points(kf)
@@ -100,7 +106,7 @@ class LocalMapper:
         keep = []
         for p in self.recent:
             age = kf.id - p.first_kf_id
-            if p.is_bad:
+            if p.is_bad or p.reference.map.resolved() is not kf.map:  # a point of a map left behind
                 continue
             if p.found / max(p.visible, 1) < self.cfg.min_found_ratio or (age >= 2 and len(p.observations) < min_obs):
                 self.map.remove_point(p)

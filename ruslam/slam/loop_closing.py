@@ -8,6 +8,12 @@ consecutive keyframes, then pass geometric verification (descriptor matches + Si
 stereo, then a guided search); the loop is corrected by propagating the similarity to the covisible group,
 fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point
 with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
+
+Map merging (ORB-SLAM3's Atlas): while the Atlas holds inactive maps, every new keyframe of the active map is also
+checked against the last keyframes of each inactive map (the place where tracking was lost) and, with a global
+descriptor, against the best-scoring keyframes of the inactive maps; the same geometric verification accepts a
+link, and the active map is moved into the inactive one by the similarity (`Atlas.merge`), then welded by fusing
+the linked region's points.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
 from ruslam.slam.local_mapping import alive_points
@@ -44,6 +51,9 @@ class LoopConfig:
     covisibility_edge_weight: int = 100  # covisibility edges of the essential graph
     global_bundle_adjustment: bool = False  # after a loop; ~15 s for 67 keyframes, a stall in sync mode
     global_ba_iterations: tuple[int, int] = (5, 10)
+    merge: bool = True  # merge the active map into an inactive one when a keyframe links them
+    merge_recent: int = 3  # last keyframes of each inactive map tried for a merge (works without global descriptors)
+    merge_top_k: int = 3  # best-scoring keyframes of the inactive maps tried (with a global descriptor)
 
 
 class KeyFrameDatabase:
@@ -77,39 +87,84 @@ class KeyFrameDatabase:
         dots = self.vectors[: self._n] @ q
         return 1.0 - np.sqrt(np.maximum(2.0 - 2.0 * dots, 0.0))
 
-    def query(self, descriptor: np.ndarray, k: int, exclude=(), min_score: float = -np.inf) -> list[KeyFrame]:
-        """Top-k keyframes by score, above `min_score`, skipping culled and excluded ones."""
+    def query(self, descriptor: np.ndarray, k: int, exclude=(), min_score: float = -np.inf,
+              maps=None) -> list[KeyFrame]:
+        """Top-k keyframes by score, above `min_score`, skipping culled and excluded ones (and, given `maps`,
+        keyframes that live in none of them)."""
         s = self.scores(descriptor)
         out = []
         for i in np.argsort(-s, kind="stable"):
             kf = self.keyframes[i]
             if s[i] < min_score or len(out) == k:
                 break
-            if not kf.is_bad and kf not in exclude:
+            if not kf.is_bad and kf not in exclude and (maps is None or _map_of(kf) in maps):
                 out.append(kf)
         return out
 
 
+def _map_of(kf: KeyFrame) -> Map | None:
+    return kf.map.resolved() if kf.map is not None else None
+
+
 class LoopCloser:
-    def __init__(self, map: Map, mapper, cfg: LoopConfig, binary: bool, stereo: bool, seed: int = 0):
-        self.map, self.mapper, self.cfg, self.binary, self.stereo, self.seed = map, mapper, cfg, binary, stereo, seed
+    def __init__(self, atlas: Atlas, mapper, cfg: LoopConfig, binary: bool, stereo: bool, seed: int = 0):
+        self.atlas, self.mapper, self.cfg, self.binary, self.stereo = atlas, mapper, cfg, binary, stereo
+        self.seed = seed
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.database = KeyFrameDatabase()
         self.groups: list[tuple[set[KeyFrame], int]] = []
         self.last_loop_id = -(10**9)
         self.loops: list[tuple[int, int]] = []  # (frame index of the current keyframe, of the loop keyframe)
+        self.merges: list[tuple[int, int]] = []  # (frame index of the active map's keyframe, of the other map's)
+
+    @property
+    def map(self) -> Map:
+        return self.atlas.active
 
     def process(self, kf: KeyFrame) -> None:
-        if kf.global_descriptor is None:
-            return
-        with self.map.lock:
-            if self.cfg.enabled and not kf.is_bad:
+        with self.atlas.lock:
+            current = not kf.is_bad and _map_of(kf) is self.map
+            if current and self.cfg.enabled and kf.global_descriptor is not None:
                 for cand in self._detect(kf):
                     found = self._verify(kf, cand)
                     if found is not None:
                         self._correct(kf, cand, *found)
                         break
-            self.database.add(kf)
+            if current and self.cfg.merge and self.atlas.inactive():
+                for cand in self._merge_candidates(kf):
+                    found = self._verify(kf, cand)
+                    if found is not None:
+                        self._merge(kf, cand, *found)
+                        break
+            if kf.global_descriptor is not None:
+                self.database.add(kf)
+
+    # --- map merging -------------------------------------------------------------------------------------------
+    def _merge_candidates(self, kf: KeyFrame) -> list[KeyFrame]:
+        c = self.cfg
+        others = self.atlas.inactive()
+        out = [k for m in others for k in m.keyframes[-c.merge_recent:][::-1]]
+        if kf.global_descriptor is not None and len(self.database):
+            out += self.database.query(kf.global_descriptor, c.merge_top_k, set(out), c.min_score, maps=others)
+        return out
+
+    def _merge(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: list[MapPoint]) -> None:
+        """Move the active map into cand's map (x_target = S x_active), then fuse and link the joined region."""
+        target = _map_of(cand)
+        S = inverse_pose(S12 @ cand.T_cw) @ kf.T_cw
+        log.info("Maps merged: keyframe %d (frame %d) of map %d <-> keyframe %d (frame %d) of map %d, scale %.3f.",
+                 kf.id, kf.index, self.map.id, cand.id, cand.index, target.id, np.cbrt(np.linalg.det(S[:3, :3])))
+        self.atlas.merge(self.map, target, S)
+        connected = [kf, *target.neighbours(kf)]
+        for k in connected:
+            self.mapper.fuse_points(k, loop_points)
+        for k in connected:
+            target.update_connections(k)
+        kf.loop_edges.add(cand)
+        cand.loop_edges.add(kf)
+        self.merges.append((kf.index, cand.index))
+        self.groups = []
+        self.last_loop_id = kf.id
 
     # --- detection ---------------------------------------------------------------------------------------------
     def _detect(self, kf: KeyFrame) -> list[KeyFrame]:
@@ -123,7 +178,8 @@ class LoopCloser:
         neighbour_scores = [scores[position[n]] for n in neighbours if n in position]
         threshold = max(c.min_score, min(neighbour_scores)) if neighbour_scores else c.min_score
         recent = {k for k in self.database.keyframes if k.id > kf.id - c.exclude_recent}
-        candidates = self.database.query(kf.global_descriptor, c.top_k, {kf, *neighbours, *recent}, threshold)
+        candidates = self.database.query(kf.global_descriptor, c.top_k, {kf, *neighbours, *recent}, threshold,
+                                         maps=[self.map])
         enough, groups = [], []
         for cand in candidates:
             group = {cand, *self.map.neighbours(cand)}
@@ -154,7 +210,7 @@ class LoopCloser:
         if out is None:
             return None
         S12, _ = out
-        loop_kfs = [cand, *self.map.neighbours(cand, 10)]
+        loop_kfs = [cand, *_map_of(cand).neighbours(cand, 10)]
         loop_points = sorted({p for k in loop_kfs for p in alive_points(k)}, key=lambda p: p.id)
         X = np.stack([p.position for p in loop_points])
         Xc = transform(S12 @ cand.T_cw, X)
@@ -187,6 +243,7 @@ class LoopCloser:
                     p.position = transform(move, p.position[None])[0]
                     corrected_by[p] = k
             k.T_cw = _rigid(corrected[k])
+            k.scale /= _scale(corrected[k])
         previous = {k: set(self.map.neighbours(k)) for k in connected}
         for k in connected:
             self.mapper.fuse_points(k, loop_points, replace_with_new=True)
@@ -245,11 +302,16 @@ class LoopCloser:
             i = idx[ref]
             frame_of_point = initial[i] if p in corrected_by else odometry[i]  # the pose the point agrees with
             p.position = transform(inverse_pose(out[i]) @ frame_of_point, p.position[None])[0]
-        for k, S in zip(kfs, out, strict=True):
+        for k, S, S0 in zip(kfs, out, initial, strict=True):
             k.T_cw = _rigid(S)
+            k.scale *= _scale(S0) / _scale(S)
+
+
+def _scale(S: np.ndarray) -> float:
+    return float(np.cbrt(np.linalg.det(S[:3, :3])))
 
 
 def _rigid(S: np.ndarray) -> np.ndarray:
     """[sR | t] -> [R | t/s]: the camera pose in the scale of the corrected map."""
-    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    s = _scale(S)
     return pose_matrix(S[:3, :3] / s, S[:3, 3] / s)

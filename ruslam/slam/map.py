@@ -39,6 +39,15 @@ def transform(T: np.ndarray, X: np.ndarray) -> np.ndarray:
     return X @ T[:3, :3].T + T[:3, 3]
 
 
+def scale_translation(T: np.ndarray, ratio: float) -> np.ndarray:
+    """A relative rigid pose re-expressed in a map whose scale changed by `ratio` (translation scales)."""
+    if ratio == 1.0:
+        return T
+    out = T.copy()
+    out[:3, 3] *= ratio
+    return out
+
+
 @dataclass(eq=False)
 class Frame:
     index: int
@@ -103,6 +112,11 @@ class KeyFrame(Frame):
         self.parent: KeyFrame | None = None  # spanning tree, for the essential graph and culled keyframes
         self.T_parent: np.ndarray | None = None  # T_cw relative to the parent, kept when culled
         self.loop_edges: set[KeyFrame] = set()
+        self.map: Map | None = None  # the map it was added to (follow `Map.resolved()` after merges)
+        # Monocular maps change scale (loop Sim3, map merge): relative poses kept against this keyframe (frames of
+        # the trajectory, the tracker's last frame, a culled child) are rescaled by the change of `scale`.
+        self.scale = 1.0
+        self.T_parent_scale = 1.0  # the parent's scale when T_parent was taken
 
     def __hash__(self) -> int:
         return self.id
@@ -114,7 +128,13 @@ class KeyFrame(Frame):
         """T_cw, also for a culled keyframe (through its parent chain)."""
         if not self.is_bad:
             return self.T_cw
-        return self.T_parent @ self.parent.pose()
+        return scale_translation(self.T_parent, self.parent.current_scale() / self.T_parent_scale) @ self.parent.pose()
+
+    def current_scale(self) -> float:
+        """`scale`, also for a culled keyframe (its frozen scale carried forward by its parent's later changes)."""
+        if not self.is_bad:
+            return self.scale
+        return self.scale * self.parent.current_scale() / self.T_parent_scale
 
 
 class MapPoint:
@@ -172,16 +192,31 @@ class MapPoint:
 
 
 class Map:
-    def __init__(self):
+    """One connected map. Several live in an Atlas (`ruslam.slam.atlas`); they share one lock."""
+
+    def __init__(self, lock: threading.RLock | None = None, id: int = 0):
+        self.id = id
         self.keyframes: list[KeyFrame] = []  # insertion order, culled ones removed
         self.points: set[MapPoint] = set()
         self.covisibility: dict[KeyFrame, dict[KeyFrame, int]] = {}
-        self.lock = threading.RLock()
+        self.lock = lock or threading.RLock()
+        self.merged_into: Map | None = None
+
+    def resolved(self) -> Map:
+        """The map this one lives on in (itself, or the map it was merged into)."""
+        m = self
+        while m.merged_into is not None:
+            m = m.merged_into
+        return m
+
+    def __repr__(self) -> str:
+        return f"Map(id={self.id}, keyframes={len(self.keyframes)})"
 
     # --- keyframes -------------------------------------------------------------------------------------------
     def add_keyframe(self, kf: KeyFrame) -> None:
         self.keyframes.append(kf)
         self.covisibility[kf] = {}
+        kf.map = self
 
     def update_connections(self, kf: KeyFrame, min_weight: int = 15) -> None:
         """Covisibility weights = number of shared map points; spanning-tree parent = strongest older neighbour."""
@@ -229,6 +264,7 @@ class Map:
         for child in self.children(kf):
             child.parent = kf.parent
         kf.T_parent = kf.T_cw @ inverse_pose(kf.parent.T_cw)
+        kf.T_parent_scale = kf.parent.current_scale()
         for o in self.covisibility.pop(kf, {}):
             self.covisibility.get(o, {}).pop(kf, None)
         kf.is_bad = True

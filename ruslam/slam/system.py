@@ -17,11 +17,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
+from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, project, triangulate
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
-from ruslam.slam.map import Frame, Map, inverse_pose
+from ruslam.slam.map import Frame, inverse_pose
 from ruslam.slam.readers import FrameReadError
 from ruslam.slam.tracking import Tracker, TrackingConfig
 
@@ -54,13 +55,20 @@ class SLAMTrajectory:
     num_keyframes: int = 0
     num_points: int = 0
     loops: list = field(default_factory=list)  # (frame index, loop frame index) of each closed loop
+    merges: list = field(default_factory=list)  # (frame index, frame index in the other map) of each map merge
+    map_frames: list = field(default_factory=list)  # frames with a pose in each final map, largest first
 
     def __len__(self) -> int:
         return len(self.timestamps)
 
     @property
     def tracked_ratio(self) -> float:
+        """Share of the frames in the reported trajectory (the largest map; other maps' frames do not count)."""
         return len(self) / max(self.num_frames, 1)
+
+    @property
+    def num_maps(self) -> int:
+        return len(self.map_frames)
 
     def write_tum(self, path: str | Path) -> None:
         write_tum(path, self.timestamps, self.poses)
@@ -140,15 +148,14 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     stereo = _sensor(sequence, cfg.sensor)
     binary = bool(getattr(extractor, "binary", False))
     rig = (sequence.cameras[1].K, np.asarray(sequence.T_cam0_cam1, np.float64)) if stereo else None
-    slam_map = Map()
-    loop_closer = LoopCloser(slam_map, None, cfg.loop, binary, stereo, cfg.seed)
+    atlas = Atlas()
+    loop_closer = LoopCloser(atlas, None, cfg.loop, binary, stereo, cfg.seed)
     mapper_cls = LocalMapper if cfg.synchronous else ThreadedLocalMapper
-    mapper = mapper_cls(slam_map, cfg.mapping, binary, rig, loop_closer)
+    mapper = mapper_cls(atlas, cfg.mapping, binary, rig, loop_closer)
     loop_closer.mapper = mapper
-    tracker = Tracker(slam_map, mapper, loop_closer.database, cfg.tracking, binary, rig, cfg.seed)
+    tracker = Tracker(atlas, mapper, loop_closer.database, cfg.tracking, binary, rig, cfg.seed)
     n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
     timings = np.zeros(n)
-    records = []
     skipped = 0
     try:
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
@@ -159,21 +166,24 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
             elif tracker.track(frame):
                 if tracker.initial_frame is not None:  # the first frame of a monocular initialisation
                     kf1, tracker.initial_frame = tracker.initial_frame, None
-                    records.append((kf1.index, kf1.timestamp, kf1, np.eye(4)))
-                ref = tracker.reference
-                records.append((i, frame.timestamp, ref, frame.T_cw @ inverse_pose(ref.T_cw)))
+                    atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
+                atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
     finally:
         mapper.finish()
+    records, poses, map_frames = atlas.trajectory()
     if not records:
         log.warning("SLAM on %s: no frame was tracked (initialisation never succeeded on %d frames, %d skipped).",
                     getattr(sequence, "name", "sequence"), n, skipped)
-    poses = np.stack([inverse_pose(T_cr @ ref.pose()) for _, _, ref, T_cr in records]) if records else \
-        np.zeros((0, 4, 4))
+    elif len(map_frames) > 1:
+        log.warning("SLAM on %s: %d maps that never merged (frames with a pose per map: %s); the trajectory is the "
+                    "largest one.", getattr(sequence, "name", "sequence"), len(map_frames), map_frames)
+    final = records[0].reference.map.resolved() if records else atlas.active
     return SLAMTrajectory(
-        timestamps=np.array([r[1] for r in records], np.float64), poses=poses,
-        frame_indices=np.array([r[0] for r in records], int), num_frames=n, timings=timings,
-        num_keyframes=len(slam_map.keyframes), num_points=len(slam_map.points), loops=list(loop_closer.loops),
+        timestamps=np.array([r.timestamp for r in records], np.float64), poses=poses,
+        frame_indices=np.array([r.index for r in records], int), num_frames=n, timings=timings,
+        num_keyframes=len(final.keyframes), num_points=len(final.points), loops=list(loop_closer.loops),
+        merges=list(loop_closer.merges), map_frames=map_frames,
     )
 
 

@@ -1,5 +1,12 @@
-"""Tracking (paper 3.3): initialisation, constant-velocity window search, reference-keyframe kNN fallback,
-local-map tracking, motion-only pose optimisation, keyframe decision and relocalisation by retrieval.
+"""Tracking (paper 3.3): initialisation, motion model, fallbacks, local-map tracking, keyframes, recovery.
+
+A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when
+that fails, matched by descriptor to the reference keyframe's points (kNN + ratio, pose from the last one or PnP),
+then to the whole local map by descriptor without any window (PnP RANSAC: the pose of a fast turn is unknown, so no
+prior is trusted). When all fail the tracker is lost: it relocalises against the active map (the latest keyframes
+and, with a global descriptor, retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once
+(ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the
+maps when they meet again.
 
 The Tracker holds no threads: it calls `mapper.insert_keyframe(kf)` and `mapper.idle()`, which the synchronous
 mapper runs inline and the threaded one queues.
@@ -12,9 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
-from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, transform
+from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, scale_translation, transform
 from ruslam.slam.optimization import bundle_adjustment, optimize_pose
 
 log = logging.getLogger(__name__)
@@ -42,6 +50,8 @@ class TrackingConfig:
     stereo_close_baselines: float = 40.0  # stereo points closer than this many baselines count as "close"
     local_keyframes: int = 20
     reloc_candidates: int = 5
+    lost_frames: int = 3  # failed relocalisations before a new map is started
+    local_map_fallback: bool = True  # last fallback: the local map by descriptor + PnP RANSAC
 
 
 def _alive(p: MapPoint | None) -> MapPoint | None:
@@ -52,29 +62,41 @@ def _alive(p: MapPoint | None) -> MapPoint | None:
 
 
 class Tracker:
-    def __init__(self, map: Map, mapper, database, cfg: TrackingConfig, binary: bool, rig=None, seed: int = 0):
-        self.map, self.mapper, self.database, self.cfg = map, mapper, database, cfg
+    def __init__(self, atlas: Atlas, mapper, database, cfg: TrackingConfig, binary: bool, rig=None, seed: int = 0):
+        self.atlas, self.mapper, self.database, self.cfg = atlas, mapper, database, cfg
         self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.state = "init"
         self.init_frame: Frame | None = None
         self.last: Frame | None = None
-        self.last_ref: tuple[KeyFrame, np.ndarray] | None = None  # (reference kf, T_last_ref)
-        self.velocity: np.ndarray | None = None
+        self.last_ref: tuple[KeyFrame, np.ndarray, float] | None = None  # (reference kf, T_last_ref, its scale)
+        self.velocity: np.ndarray | None = None  # in the scale of last_ref
+        self.lost_count = 0
+        self.lost_map: Map | None = None  # the map tracking was lost in, while a new one initialises
         self.reference: KeyFrame | None = None
         self.last_kf_index = -10**9
         self.initial_frame: KeyFrame | None = None  # set when monocular initialisation also poses an older frame
 
+    @property
+    def map(self) -> Map:
+        return self.atlas.active
+
     # --- entry point -------------------------------------------------------------------------------------------
     def track(self, frame: Frame) -> bool:
-        """Estimate `frame.T_cw`; True when the frame is tracked against the map."""
-        with self.map.lock:
+        """Estimate `frame.T_cw`; True when the frame is tracked against the (active) map."""
+        with self.atlas.lock:
             if self.state == "init":
-                ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
-                if ok:
-                    self.state = "ok"
-                return ok
-            ok = self._track_frame(frame) if self.state == "ok" else self._relocalize(frame)
+                if self.lost_map is not None and self._relocalize_in_lost_map(frame):
+                    ok = True
+                else:
+                    ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
+                    if ok:
+                        self.state, self.lost_map = "ok", None
+                    return ok
+            elif self.state == "ok":
+                ok = self._track_frame(frame)
+            else:
+                ok = self._relocalize(frame, self.map)
             if ok:
                 ok = self._track_local_map(frame)
                 if not ok:
@@ -82,18 +104,51 @@ class Tracker:
                               int(np.sum([p is not None for p in frame.points]) - frame.outliers.sum()))
             elif self.state == "ok":
                 log.debug("Frame %d: frame-to-frame tracking failed.", frame.index)
-            self.state = "ok" if ok else "lost"
             if not ok:
-                self.velocity = None
+                self._lost(frame)
                 return False
+            self.state, self.lost_count = "ok", 0
             if self.last is not None and self.last.T_cw is not None:
                 self.velocity = frame.T_cw @ inverse_pose(self.last.T_cw)
             self._drop_outliers(frame)
             if self._need_keyframe(frame):
                 self._insert_keyframe(frame)
             self.last = frame
-            self.last_ref = (self.reference, frame.T_cw @ inverse_pose(self.reference.T_cw))
+            self.last_ref = (self.reference, frame.T_cw @ inverse_pose(self.reference.T_cw),
+                             self.reference.current_scale())
             return True
+
+    def _lost(self, frame: Frame) -> None:
+        """One more failed frame; after `lost_frames` of them, a new map (the old one stays in the Atlas)."""
+        frame.T_cw = None
+        self.velocity = self.last = None
+        if self.state == "ok":
+            log.info("Frame %d: tracking lost.", frame.index)
+        self.state = "lost"
+        self.lost_count += 1
+        if self.lost_count < self.cfg.lost_frames:
+            return
+        log.info("Frame %d: relocalisation failed for %d frames; starting a new map.", frame.index,
+                 self.lost_count)
+        self.lost_map = self.map
+        self.atlas.new_map()
+        self.state, self.lost_count, self.init_frame = "init", 0, None
+        self.last_ref = self.reference = None
+        if self.rig is None and len(frame) >= self.cfg.init_min_matches:
+            frame.points = [None] * len(frame)
+            self.init_frame = frame  # the reference of the new map's initialisation
+
+    def _relocalize_in_lost_map(self, frame: Frame) -> bool:
+        """While a new map initialises: back to the lost map if the frame relocalises there."""
+        if self.lost_map.merged_into is not None or not self.lost_map.keyframes:
+            self.lost_map = None
+            return False
+        if not self._relocalize(frame, self.lost_map):
+            return False
+        log.info("Frame %d: back in map %d; the new map is dropped.", frame.index, self.lost_map.id)
+        self.atlas.activate(self.lost_map)
+        self.state, self.lost_map, self.init_frame = "ok", None, None
+        return True
 
     # --- initialisation ----------------------------------------------------------------------------------------
     def _initialize_stereo(self, frame: Frame) -> bool:
@@ -181,7 +236,7 @@ class Tracker:
     def _start(self, frame: Frame, kf: KeyFrame, kfs: list[KeyFrame]) -> None:
         self.reference = kf
         self.last = frame
-        self.last_ref = (kf, frame.T_cw @ inverse_pose(kf.T_cw))
+        self.last_ref = (kf, frame.T_cw @ inverse_pose(kf.T_cw), kf.current_scale())
         self.last_kf_index = frame.index
         self.velocity = None
         for k in kfs:
@@ -189,16 +244,35 @@ class Tracker:
 
     # --- frame-to-frame ----------------------------------------------------------------------------------------
     def _track_frame(self, frame: Frame) -> bool:
-        ref, T_lr = self.last_ref
-        self.last.T_cw = T_lr @ ref.pose()  # the reference may have moved (BA, loop closure)
+        ref, T_lr, scale = self.last_ref
+        ratio = ref.current_scale() / scale  # a loop or a merge may have rescaled the map since the last frame
+        self.last.T_cw = scale_translation(T_lr, ratio) @ ref.pose()  # the reference may have moved too
         if self.velocity is not None:
-            frame.T_cw = self.velocity @ self.last.T_cw
+            frame.T_cw = scale_translation(self.velocity, ratio) @ self.last.T_cw
             pts = [p for p in map(_alive, self.last.points) if p is not None]
             for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
                 frame.points = [None] * len(frame)
                 if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
                     return True
-        return self._track_reference_keyframe(frame)
+        if self._track_reference_keyframe(frame):
+            return True
+        if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
+            log.debug("Frame %d tracked by the local-map fallback.", frame.index)
+            return True
+        return False
+
+    def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
+        """Last fallback: the local map's points matched by descriptor, no window, pose by PnP RANSAC."""
+        local = [self.reference, *self.map.neighbours(self.reference, self.cfg.local_keyframes)]
+        points = sorted({p for kf in local for p in kf.points if p is not None and not p.is_bad}, key=lambda p: p.id)
+        if len(points) < 15:
+            return False
+        ia, ib = match_knn_ratio(np.stack([p.descriptor for p in points]), frame.descriptors, self.binary,
+                                 self.max_distance, self.cfg.ratio)
+        if len(ia) < 15:
+            return False
+        frame.points = [None] * len(frame)
+        return self._pnp(frame, [points[a] for a in ia], ib)
 
     def _track_reference_keyframe(self, frame: Frame) -> bool:
         """Fallback: kNN + ratio test against the reference keyframe's points, then the pose (PnP if needed)."""
@@ -346,12 +420,12 @@ class Tracker:
             self.map.add_point(p)
 
     # --- relocalisation ----------------------------------------------------------------------------------------
-    def _relocalize(self, frame: Frame) -> bool:
-        """Candidates by global-descriptor retrieval (or the latest keyframes without one), then kNN + PnP."""
+    def _relocalize(self, frame: Frame, in_map: Map) -> bool:
+        """Candidates: the latest keyframes of `in_map`, then global-descriptor retrieval in it; kNN + PnP."""
+        candidates = in_map.keyframes[-self.cfg.reloc_candidates:][::-1]
         if frame.global_descriptor is not None and self.database is not None and len(self.database):
-            candidates = self.database.query(frame.global_descriptor, k=self.cfg.reloc_candidates)
-        else:
-            candidates = self.map.keyframes[-self.cfg.reloc_candidates:][::-1]
+            candidates += self.database.query(frame.global_descriptor, self.cfg.reloc_candidates, set(candidates),
+                                              maps=[in_map])
         for kf in candidates:
             idx = kf.matched_indices()
             if len(idx) < 15:
