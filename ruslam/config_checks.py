@@ -82,7 +82,13 @@ def check_train(cfg: DictConfig) -> None:
     require_set(cfg)
     for key in ("ckpt_path", "init_weights"):
         require_path(cfg, key, "file", MissingWeights)
-    for key in ("model.net.pretrained_path", "teacher.local.weights", "teacher.global_head.weights"):
+    if str(OmegaConf.select(cfg, "model.net.pretrained_path", default=None)) == "imagenet":
+        from ruslam.models.imagenet import imagenet_mobilenet_v2  # noqa: PLC0415 (imports torch)
+
+        imagenet_mobilenet_v2()  # the packaged ImageNet backbone: installed, and its sha256 right
+    else:
+        require_path(cfg, "model.net.pretrained_path", "file", MissingWeights)
+    for key in ("teacher.local.weights", "teacher.global_head.weights"):
         require_path(cfg, key, "file", MissingWeights)
     require_path(cfg, "teacher.global_head.codebook", "file")
     dm = cfg.datamodule

