@@ -56,6 +56,7 @@ class SLAMTrajectory:
     loops: list = field(default_factory=list)  # (frame index, loop frame index) of each closed loop
     merges: list = field(default_factory=list)  # (frame index, frame index in the other map) of each map merge
     map_frames: list = field(default_factory=list)  # frames with a pose in each final map, largest first
+    initialized_at: int | None = None  # index of the frame at which the first map was initialised
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -156,6 +157,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
     timings = np.zeros(n)
     skipped = 0
+    initialized_at = None
     try:
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
             start = time.perf_counter()
@@ -163,6 +165,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
             if frame is None:
                 skipped += 1
             elif tracker.track(frame):
+                initialized_at = i if initialized_at is None else initialized_at
                 if tracker.initial_frame is not None:  # the first frame of a monocular initialisation
                     kf1, tracker.initial_frame = tracker.initial_frame, None
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
@@ -182,7 +185,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
         timestamps=np.array([r.timestamp for r in records], np.float64), poses=poses,
         frame_indices=np.array([r.index for r in records], int), num_frames=n, timings=timings,
         num_keyframes=len(final.keyframes), num_points=len(final.points), loops=list(loop_closer.loops),
-        merges=list(loop_closer.merges), map_frames=map_frames,
+        merges=list(loop_closer.merges), map_frames=map_frames, initialized_at=initialized_at,
     )
 
 
