@@ -309,8 +309,9 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     for name, seq in opened.items():
         seq.name = name
         for method, extractor in extractors.items():
+            slam_cfg = OmegaConf.merge(cfg.slam, (task.get("slam_options") or {}).get(method) or {})
             try:
-                estimate = slam_run(seq, extractor, cfg.slam)
+                estimate = slam_run(seq, extractor, slam_cfg)
             except Exception as exc:  # noqa: BLE001 (one crashed run is a failed cell, not a lost evaluation)
                 log.exception("SLAM crashed on %s with %s", name, method)
                 results.append(RunResult(name, method, False, f"crashed: {type(exc).__name__}: {exc}"))
