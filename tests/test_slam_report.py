@@ -172,3 +172,29 @@ def test_dataset_bound_and_per_name_extractor_options(tmp_path):
     cfg.dataset.failure.bound_margin_m = 5.0
     cfg.task.extractor_options = {"orb": {"max_keypoints": 500}}
     assert run(cfg, slam_run=strays)["results"][0]["ok"] and seen == {"ORB": 500}
+
+
+def test_robustness_matrix_reports_tracking_after_init_maps_and_ape_share(tmp_path):
+    """dataset=robustness: variants given as knobs; a run that starts late but then keeps every frame scores 100 %
+    after initialisation, the map count comes from the SLAM, APE is also given as a share of the path flown."""
+    from ruslam.eval.slam_report import run
+
+    def late_start(sequence, extractor, cfg):
+        est = fake_slam(sequence, extractor, cfg)
+        keep = slice(len(sequence) // 8, None)
+        est.timestamps, est.poses = sequence.groundtruth.timestamps[keep], est.poses[keep]
+        est.num_maps = 2
+        return est
+
+    cfg = compose("evaluate", ["task=slam", "dataset=robustness", "dataset.split=dev", f"out_dir={tmp_path}",
+                               "extractors=[orb]", "dataset.select=[turn9]", f"dataset.reader.cache_dir={tmp_path}",
+                               "dataset.reader.width=48", "dataset.reader.height=36",
+                               "+dataset.splits.dev.turn9.frames=16"])
+    assert cfg.slam.max_frames is None  # the dataset runs every frame (the embedded sweep's cap is its own)
+    result = run(cfg, slam_run=late_start)["results"][0]
+    assert result["ok"] and result["frames"] == 16 and result["tracked"] == pytest.approx(14 / 16)
+    assert result["tracked_after_init"] == pytest.approx(1.0) and result["maps"] == 2
+    path = result["ape"] / result["ape_path"]  # the path over the 16 frames: 15 steps of 0.1 x 2 m
+    assert path == pytest.approx(15 * 0.2, rel=0.02)
+    table = (tmp_path / "table.md").read_text()
+    assert "Robustness matrix, dev split" in table and "| turn9 | 88% | 100% | 2 |" in table

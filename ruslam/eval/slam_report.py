@@ -30,7 +30,12 @@ from ruslam.slam.readers import Trajectory, write_tum_trajectory
 
 log = logging.getLogger(__name__)
 FAIL = "×"
-METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked"}
+METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked", "tracked_after_init": "Tracked after init",
+           "maps": "Maps", "ape_path": "APE % of path", "fps": "fps"}
+TITLES = {"tracked": "tracked fraction", "tracked_after_init": "tracked after initialisation", "maps": "maps",
+          "ape_path": "APE as % of the path", "fps": "frames/s"}
+ERRORS = ("ape", "rpe", "ape_path")  # metrics in metres (lower is better, meaningless for a failed run)
+HIGHER_IS_BETTER = ("tracked", "tracked_after_init", "fps")
 
 
 @dataclass
@@ -42,6 +47,9 @@ class RunResult:
     ape: float = math.nan  # m, RMSE after alignment
     rpe: float = math.nan  # m, RMSE over 0.1 m
     tracked: float = 0.0  # fraction of the sequence's frames with a pose
+    tracked_after_init: float = 0.0  # fraction of the frames from the first posed one on that have a pose
+    maps: int = 0  # maps the SLAM built (1 when it never lost itself for good; 0 when it never initialised)
+    ape_path: float = math.nan  # APE / length of the ground-truth path over the frames run
     frames: int = 0
     runtime_s: float = 0.0
     fps: float = 0.0
@@ -90,7 +98,15 @@ def average_over_common_successes(results: list[RunResult], sequences: list[str]
 def _cell(value: float, metric: str) -> str:
     if value is None or not np.isfinite(value):
         return FAIL
-    return f"{100 * value:.0f}%" if metric == "tracked" else f"{value:.3f}"
+    if metric in ("tracked", "tracked_after_init"):
+        return f"{100 * value:.0f}%"
+    if metric == "ape_path":
+        return f"{100 * value:.2f}%"
+    if metric == "maps":
+        return f"{value:.0f}"
+    if metric == "fps":
+        return f"{value:.1f}"
+    return f"{value:.3f}"
 
 
 def results_table(results: list[RunResult], sequences: list[str], methods: list[str], metrics: list[str],
@@ -102,9 +118,9 @@ def results_table(results: list[RunResult], sequences: list[str], methods: list[
     avg, common = average_over_common_successes(results, sequences, methods, metrics)
     rows = []
     for s in sequences:
-        # errors of a failed run are meaningless (x); its tracked fraction is measured and says how it failed
+        # errors of a failed run are meaningless (x); its tracked fraction etc. are measured and say how it failed
         rows.append((s, {(m, k): (getattr(by_key[(s, m)], k) if (s, m) in by_key
-                                  and (by_key[(s, m)].ok or k == "tracked") else None)
+                                  and (by_key[(s, m)].ok or k not in ERRORS) else None)
                          for m in methods for k in metrics}))
     rows.append(("Avg", {key: (v if common else None) for key, v in avg.items()}))
     header = [row_label] + [f"{labels.get(m, m)} {METRICS[k]}" if len(metrics) > 1 else labels.get(m, m)
@@ -117,7 +133,7 @@ def results_table(results: list[RunResult], sequences: list[str], methods: list[
         cells = []
         for k in metrics:
             ok = [v for (m, kk), v in values.items() if kk == k and v is not None and np.isfinite(v)]
-            best = (max(ok) if k == "tracked" else min(ok)) if len(ok) > 1 else None
+            best = (max(ok) if k in HIGHER_IS_BETTER else min(ok)) if len(ok) > 1 and k != "maps" else None
             for m in methods:
                 v = values[(m, k)]
                 text = _cell(v, k)
@@ -132,18 +148,20 @@ def results_table(results: list[RunResult], sequences: list[str], methods: list[
 
 
 def runs_table(results: list[RunResult], labels: dict) -> tuple[str, str]:
-    head = ["sequence", "method", "status", "frames", "tracked", "runtime_s", "fps", "keyframes", "loops"]
+    head = ["sequence", "method", "status", "frames", "tracked", "tracked_after_init", "maps", "runtime_s", "fps",
+            "keyframes", "loops"]
     md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     out = io.StringIO()
     writer = csv.writer(out)
-    writer.writerow(head + ["ape", "rpe", "reason"])
+    writer.writerow(head + ["ape", "rpe", "ape_path", "reason"])
     for r in results:
         status = "ok" if r.ok else f"{FAIL} {r.reason}"
         md.append(f"| {r.sequence} | {labels.get(r.method, r.method)} | {status} | {r.frames} | {r.tracked:.0%} | "
-                  f"{r.runtime_s:.1f} | {r.fps:.2f} | {r.keyframes} | {r.loops} |")
+                  f"{r.tracked_after_init:.0%} | {r.maps} | {r.runtime_s:.1f} | {r.fps:.2f} | {r.keyframes} | "
+                  f"{r.loops} |")
         writer.writerow([r.sequence, r.method, "ok" if r.ok else "x", r.frames, f"{r.tracked:.4f}",
-                         f"{r.runtime_s:.2f}", f"{r.fps:.3f}", r.keyframes, r.loops, f"{r.ape:.6g}", f"{r.rpe:.6g}",
-                         r.reason])
+                         f"{r.tracked_after_init:.4f}", r.maps, f"{r.runtime_s:.2f}", f"{r.fps:.3f}", r.keyframes,
+                         r.loops, f"{r.ape:.6g}", f"{r.rpe:.6g}", f"{r.ape_path:.6g}", r.reason])
     return "\n".join(md) + "\n", out.getvalue()
 
 
@@ -216,12 +234,12 @@ def open_sequence(dataset: DictConfig, name: str, entry: str):
     """Build one sequence with the dataset's reader; a missing dataset gives one sentence on where to get it."""
     reader = instantiate(dataset.reader)
     root = dataset.get("root", "__embedded__")
-    if root == "__embedded__":
-        return reader(entry)
+    if root == "__embedded__":  # generated sequences: entry is a level name, or a variant's knobs
+        return reader(name=name, **entry) if isinstance(entry, dict) else reader(entry)
     path = Path(str(root)) / entry if root else None
     if path is None or not path.exists():
-        raise FileNotFoundError(f"Dataset {dataset.label} not found: sequence {name} expected at "
-                                f"{path if path else '<dataset.root>/' + entry}. {dataset.download} Then pass "
+        raise FileNotFoundError(f"Dataset {dataset.get('label') or dataset.name} not found: sequence {name} expected "
+                                f"at {path if path else '<dataset.root>/' + entry}. {dataset.download} Then pass "
                                 f"dataset.root=<folder>.")
     return reader(path)
 
@@ -230,8 +248,12 @@ def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delt
     """Score one SLAM output (anything with timestamps, poses, num_frames, timings, num_keyframes, loops)."""
     runtime = float(np.sum(estimate.timings))
     frames = int(estimate.num_frames)
-    tracked = len(estimate.timestamps) / max(frames, 1)
+    posed = len(estimate.timestamps)
+    tracked = posed / max(frames, 1)
+    first = int(np.searchsorted(sequence.timestamps, np.min(estimate.timestamps) - 1e-6)) if posed else frames
     base = dict(sequence=sequence.name, method=method, tracked=tracked, frames=frames, runtime_s=runtime,
+                tracked_after_init=posed / max(frames - first, 1) if posed else 0.0,
+                maps=int(getattr(estimate, "num_maps", 1 if posed else 0)),
                 fps=frames / runtime if runtime > 0 else 0.0, keyframes=int(getattr(estimate, "num_keyframes", 0)),
                 loops=len(getattr(estimate, "loops", [])))
     gt = sequence.groundtruth
@@ -248,8 +270,41 @@ def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delt
         reason = failure_reason(tracked, aligned, gt.positions, rule, errors.ape_rmse if errors else None)
     if reason:
         return RunResult(ok=False, reason=reason, **base), {}
-    return (RunResult(ok=True, reason="", ape=errors.ape_rmse, rpe=errors.rpe_rmse, **base),
+    path = _path_length(gt, sequence.timestamps[:frames])
+    return (RunResult(ok=True, reason="", ape=errors.ape_rmse, rpe=errors.rpe_rmse,
+                      ape_path=errors.ape_rmse / path if path > 0 else math.nan, **base),
             {"aligned": errors.aligned.positions_xyz, "reference": errors.reference.positions_xyz})
+
+
+def _path_length(groundtruth, stamps: np.ndarray) -> float:
+    """Length of the ground-truth path between the first and the last of ``stamps`` (the frames that were run)."""
+    if len(stamps) == 0:
+        return 0.0
+    inside = (groundtruth.timestamps >= stamps[0] - 1e-6) & (groundtruth.timestamps <= stamps[-1] + 1e-6)
+    xyz = groundtruth.positions[inside]
+    return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
+
+
+def dataset_sequences(dataset: DictConfig) -> dict:
+    """{name: entry} of the dataset: its ``sequences`` (a dict, or a list of names), or, when null, every
+    sequence its ``discover`` function finds under ``root`` (a generic folder of sequences)."""
+    if dataset.get("sequences") is None:
+        if not dataset.get("root"):
+            raise ValueError(f"Dataset {dataset.name} needs dataset.root=<folder of sequences>.")
+        if not dataset.get("discover"):
+            raise ValueError(f"Dataset {dataset.name} lists no sequences and has no discover function.")
+        return get_method(dataset.discover)(dataset.root)
+    sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
+    return sequences if isinstance(sequences, dict) else {str(s): str(s) for s in sequences}
+
+
+def dataset_label(dataset: DictConfig, opened: dict) -> str:
+    """The table title: the dataset's label, or for a generic folder its name, size and sensor."""
+    if dataset.get("label"):
+        return str(dataset.label)
+    stereo = [s.stereo for s in opened.values()]
+    sensor = "stereo" if all(stereo) else "monocular" if not any(stereo) else "mono and stereo"
+    return f"{Path(str(dataset.root)).name}, {len(opened)} sequence(s) ({sensor})"
 
 
 def run(cfg: DictConfig, slam_run=None) -> dict:
@@ -260,8 +315,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     out_dir = Path(cfg.out_dir)
     slam_run = slam_run or get_method(task.slam_runner)
     labels = dict(task.get("labels") or {})
-    sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
-    sequences = sequences if isinstance(sequences, dict) else {str(s): str(s) for s in sequences}
+    sequences = dataset_sequences(dataset)
     select = dataset.get("select")
     if select:  # dataset.select=[MH01,MH03]: a subset, in the given order
         unknown = [str(s) for s in select if str(s) not in sequences]
@@ -272,12 +326,14 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     extractors, skipped = resolve_extractors(list(cfg.extractors), task)
     methods = list(extractors)
     rule = OmegaConf.merge(task.failure, dataset.get("failure") or {})  # a dataset may rescale the bound
+    label = dataset_label(dataset, opened)
     results, curves = [], {}
     for name, seq in opened.items():
         seq.name = name
         for method, extractor in extractors.items():
+            slam_cfg = OmegaConf.merge(cfg.slam, (task.get("slam_options") or {}).get(method) or {})
             try:
-                estimate = slam_run(seq, extractor, cfg.slam)
+                estimate = slam_run(seq, extractor, slam_cfg)
             except Exception as exc:  # noqa: BLE001 (one crashed run is a failed cell, not a lost evaluation)
                 log.exception("SLAM crashed on %s with %s", name, method)
                 results.append(RunResult(name, method, False, f"crashed: {type(exc).__name__}: {exc}"))
@@ -285,19 +341,24 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
             if len(estimate.timestamps):
                 write_tum_trajectory(_mkdir(out_dir / "trajectories" / name) / f"{method}.txt",
                                      Trajectory(estimate.timestamps, estimate.poses))
-            result, curve = evaluate_run(seq, estimate, method, dataset.alignment, rule, task.rpe_delta)
+            else:
+                print(f"[slam] {name} / {method}: no frame got a pose, so no trajectory file is written.")
+            alignment = dataset.alignment if dataset.alignment != "auto" else ("se3" if seq.stereo else "sim3")
+            result, curve = evaluate_run(seq, estimate, method, alignment, rule, task.rpe_delta)
             results.append(result)
             curves.setdefault(name, {})[method] = curve
-            print(f"[slam] {name} / {method}: " + (f"APE {result.ape:.3f} m, RPE {result.rpe:.3f} m" if result.ok
-                  else f"{FAIL} {result.reason}") + f", tracked {result.tracked:.0%}, {result.fps:.1f} frames/s")
+            print(f"[slam] {name} / {method}: " + (f"APE {result.ape:.3f} m ({result.ape_path:.2%} of the path), "
+                  f"RPE {result.rpe:.3f} m" if result.ok else f"{FAIL} {result.reason}") +
+                  f", tracked {result.tracked:.0%} ({result.tracked_after_init:.0%} after initialisation), "
+                  f"{result.maps} map(s), {result.loops} loop(s), {result.fps:.1f} frames/s", flush=True)
         ref = opened[name].groundtruth
         if ref is not None:
-            plot_top_view(out_dir / "plots" / f"{name}.png", f"{dataset.label}: {name}", ref.positions,
+            plot_top_view(out_dir / "plots" / f"{name}.png", f"{label}: {name}", ref.positions,
                           {labels.get(m, m): c["aligned"] for m, c in curves.get(name, {}).items() if c})
     metrics = list(dataset.metrics)
-    errors = [METRICS[k] for k in metrics if k != "tracked"]
-    title = f"{dataset.label}: RMSE of {' and '.join(errors)} (m)" + (", tracked fraction" if "tracked" in metrics
-                                                                       else "")
+    errors = [METRICS[k] for k in metrics if k in ("ape", "rpe")]
+    others = [TITLES[k] for k in metrics if k not in ("ape", "rpe")]
+    title = f"{label}: RMSE of {' and '.join(errors)} (m)" + "".join(f", {t}" for t in others)
     md, table_csv = results_table(results, list(sequences), methods, metrics, labels, title,
                                   row_label=dataset.get("row_label", "Sequence"))
     if skipped:

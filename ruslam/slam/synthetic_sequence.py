@@ -86,7 +86,8 @@ def _fractal(rng: np.random.Generator, size: int, octaves: int, base: int = 8) -
     return np.clip(out / (total * 1.5), -1, 1)
 
 
-def make_seafloor(cfg: SeafloorConfig) -> Seafloor:
+def make_seafloor(cfg: SeafloorConfig, num_pebbles: int = 12000) -> Seafloor:
+    """The seafloor of ``cfg`` (seeded); ``num_pebbles`` sets how densely small pebbles/shells cover the sand."""
     rng = np.random.default_rng(cfg.seed)
     half, height_res, tex_res = cfg.half_extent, cfg.height_res, cfg.texture_res
     res = 2 * half / height_res
@@ -119,7 +120,7 @@ def make_seafloor(cfg: SeafloorConfig) -> Seafloor:
     sand = np.array([0.55, 0.5, 0.4], np.float32) * (1 + detail)[..., None]
     sand *= (1 + 0.3 * _fractal(rng, tex_res // 4, 2, base=3))[..., None].repeat(4, 0).repeat(4, 1)  # patches
     tex = np.clip(sand, 0, 1)
-    n_pebbles = 12000
+    n_pebbles = int(num_pebbles)
     centres = rng.integers(0, tex_res, (n_pebbles, 2))
     axes = rng.integers(2, 10, (n_pebbles, 2))
     shades = rng.uniform(0.25, 0.9, (n_pebbles, 1)) * [0.95, 0.9, 0.8] * rng.uniform(0.93, 1.07, (n_pebbles, 3))
@@ -173,10 +174,21 @@ def pixel_rays(camera: Camera) -> np.ndarray:
     return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
-def render(floor: Seafloor, rays: np.ndarray, T_world_cam: np.ndarray, steps: int = 12, refine: int = 3):
-    """Ray-cast one view -> (RGB float32 [H, W, 3] in [0, 1], range [H, W] metres along each pixel's ray)."""
+def render(floor: Seafloor, rays: np.ndarray, T_world_cam: np.ndarray, steps: int = 12, refine: int = 3,
+           texture_levels: list[np.ndarray] | None = None, max_incidence_deg: float | None = None):
+    """Ray-cast one view -> (RGB float32 [H, W, 3] in [0, 1], range [H, W] metres along each pixel's ray).
+
+    ``texture_levels`` (`texture_pyramid`) filters the texture by each pixel's footprint (mip-mapping), so grazing
+    views of a far floor do not alias into flickering noise. ``max_incidence_deg``: rays closer to the horizon
+    than this (angle from straight down) see nothing (black, infinite range), instead of raising.
+    """
     d = rays @ T_world_cam[:3, :3].T.astype(np.float32)
     o = T_world_cam[:3, 3].astype(np.float32)
+    void = None
+    if max_incidence_deg is not None:
+        z_max = -np.cos(np.deg2rad(max_incidence_deg))
+        void = d[..., 2] > z_max
+        d[..., 2] = np.minimum(d[..., 2], z_max)
     if np.any(d[..., 2] >= -1e-3):
         raise ValueError("render() needs a downward-looking camera: some pixel rays do not point down.")
     g = floor.height.shape[0] / (2 * floor.half)
@@ -204,8 +216,40 @@ def render(floor: Seafloor, rays: np.ndarray, T_world_cam: np.ndarray, steps: in
     tg = floor.texture.shape[0] / (2 * floor.half)
     tx = (o[0] + t * d[..., 0] + floor.half) * tg - 0.5
     ty = (o[1] + t * d[..., 1] + floor.half) * tg - 0.5
-    rgb = cv2.remap(floor.texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    return rgb.astype(np.float32) / 255.0, t
+    if texture_levels is None:
+        rgb = cv2.remap(floor.texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        rgb = rgb.astype(np.float32) / 255.0
+    else:
+        rgb = _sample_mipmapped(texture_levels, tx, ty)
+    if void is not None:
+        rgb[void], t[void] = 0.0, np.inf
+    return rgb, t
+
+
+def texture_pyramid(texture: np.ndarray, levels: int = 6) -> list[np.ndarray]:
+    """The texture and its successive 2x reductions (level k: one texel = 2^k texels of level 0)."""
+    out = [texture]
+    for _ in range(levels - 1):
+        out.append(cv2.pyrDown(out[-1]))
+    return out
+
+
+def _sample_mipmapped(levels: list[np.ndarray], tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+    """Trilinear texture lookup: the level is log2 of the pixel footprint in texels (from neighbouring pixels)."""
+    du = np.hypot(np.gradient(tx, axis=1), np.gradient(ty, axis=1))
+    dv = np.hypot(np.gradient(tx, axis=0), np.gradient(ty, axis=0))
+    level = np.clip(np.log2(np.maximum(np.maximum(du, dv), 1e-6)), 0, len(levels) - 1)
+    lo = np.floor(level).astype(int)
+    hi = np.minimum(lo + 1, len(levels) - 1)
+    frac = (level - lo)[..., None]
+    rgb = np.zeros((*tx.shape, 3), np.float32)
+    for k in np.unique(np.concatenate([lo.ravel(), hi.ravel()])):
+        s = 2.0**-k
+        sample = cv2.remap(levels[k], ((tx + 0.5) * s - 0.5).astype(np.float32),
+                           ((ty + 0.5) * s - 0.5).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        weight = np.where(lo[..., None] == k, 1 - frac, 0) + np.where(hi[..., None] == k, frac, 0)
+        rgb += weight.astype(np.float32) * (sample.astype(np.float32) / 255.0)
+    return rgb
 
 
 # ------------------------------------------------------------------------------------------ writing / turbidity

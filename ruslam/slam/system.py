@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from ruslam.slam.atlas import Atlas
+from ruslam.slam.conditioning import ImageConditioning
 from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, project, triangulate
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
@@ -37,6 +38,7 @@ class SLAMConfig:
     max_frames: int | None = None
     stereo_epipolar_px: float = 2.0
     stereo_max_depth_baselines: float = 80.0
+    conditioning: ImageConditioning = field(default_factory=ImageConditioning)  # first step: e.g. CLAHE
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -108,6 +110,8 @@ def make_frame(index, timestamp, images, extractor, sequence, stereo: bool, cfg:
     out = extractor.extract(images[0])
     kps = cam0.undistort_points(out["keypoints"]) if len(out["keypoints"]) else np.zeros((0, 2))
     if len(kps) < cfg.tracking.min_keypoints:
+        log.warning("Frame %d skipped: %d keypoints found, the minimum is %d (tracking.min_keypoints).", index,
+                    len(kps), cfg.tracking.min_keypoints)
         return None
     g = out.get("global_descriptor")
     frame = Frame(index=index, timestamp=float(timestamp), keypoints=kps.astype(np.float64),
@@ -209,12 +213,10 @@ def _load_frame(i, sequence, extractor, stereo, cfg) -> Frame | None:
     except (OSError, ValueError) as err:  # readers raise FrameReadError(ValueError) for corrupt/missing files
         log.warning("Frame %d skipped: %s", i, err)
         return None
+    images = [cfg.conditioning(image) for image in images]
     try:
         frame = make_frame(i, sequence.timestamps[i], images, extractor, sequence, stereo, cfg)
     except (ValueError, TypeError) as err:  # extractor contract violations (wrong shape/dtype)
         log.warning("Frame %d skipped: %s", i, err)
         return None
-    if frame is None:
-        log.warning("Frame %d skipped: fewer than %d keypoints (black or featureless image).", i,
-                    cfg.tracking.min_keypoints)
     return frame
