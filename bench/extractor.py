@@ -1,6 +1,7 @@
 """Extraction latency at 480x640 on 2 threads: UWNet vs its backbone, SuperPoint, XFeat, ALIKED, ORB; DCN fast path.
 
     nice .venv/bin/python bench/extractor.py [--reps 15] [--threads 2] [--weights PATH]
+    nice .venv/bin/python bench/extractor.py --orb [--frames 10]     # ORB-SLAM's ORB vs plain cv2 ORB only
 
 All methods run round-robin on the same image (so machine load hits them alike) and the median is reported with
 ratios against the MobileNetV2 backbone (features[:18], what UWNet builds on), SuperPoint and XFeat, measured in
@@ -56,14 +57,60 @@ def round_robin(fns: dict, reps: int) -> dict[str, float]:
     return {k: 1000 * statistics.median(v) for k, v in times.items()}
 
 
+def orb_frames(count: int) -> dict[str, list[np.ndarray]]:
+    """Hard frames: the robustness matrix's DEV low-texture and turbid variants (rendered on first use), the
+    embedded 640x480 sequence at Jerlov 9C, and TUM fr3 cabinet (weakly textured, real) when ../shared is here."""
+    from ruslam.slam.readers import read_tum  # noqa: PLC0415
+    from ruslam.slam.robustness import robustness_sequence  # noqa: PLC0415
+    from ruslam.slam.synthetic_sequence import synthetic_sequence  # noqa: PLC0415
+
+    sets = {
+        "robustness DEV lowtex 320x240": robustness_sequence("lowtex", progress=False, seed=1, contrast=0.4,
+                                                             density=0.3),
+        "robustness DEV turbid (5C) 320x240": robustness_sequence("turbid", progress=False, seed=1, water="5C",
+                                                                  turn_deg=7),
+        "embedded seafloor Jerlov 9C 640x480": synthetic_sequence("jerlov_9C", progress=False),
+    }
+    cabinet = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences" / "tum_freiburg3_cabinet_keyframes"
+    if cabinet.is_dir():
+        sets["TUM fr3 cabinet keyframes 640x480"] = read_tum(cabinet)
+    picks = {}
+    for name, seq in sets.items():
+        step = max(1, len(seq) // count)
+        picks[name] = [seq.load(i)[0] for i in range(0, len(seq), step)][:count]
+    return picks
+
+
+def orb_comparison(frames: int, reps: int) -> None:
+    """Keypoints found (mean per frame) and extraction time of ORB-SLAM's ORB vs plain cv2 ORB, same budget."""
+    plain, ours = load_extractor("orb", max_keypoints=1000, distribution="opencv"), load_extractor(
+        "orb", max_keypoints=1000)
+    print("| frames | plain ORB kp | ORB-SLAM ORB kp | plain ms | ORB-SLAM ms | time ratio |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for name, images in orb_frames(frames).items():
+        counts = {k: np.mean([len(e.extract(im)["keypoints"]) for im in images]) for k, e in
+                  (("plain", plain), ("ours", ours))}
+        ms = round_robin({"plain": lambda images=images: [plain.extract(im) for im in images],
+                          "ours": lambda images=images: [ours.extract(im) for im in images]}, reps)
+        ms = {k: v / len(images) for k, v in ms.items()}
+        print(f"| {name} ({len(images)}) | {counts['plain']:.0f} | {counts['ours']:.0f} | {ms['plain']:.1f} | "
+              f"{ms['ours']:.1f} | {ms['ours'] / ms['plain']:.1f}x |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--reps", type=int, default=15)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--weights", default=None, help="UWNet weights (default: shipped file, else random init)")
+    parser.add_argument("--orb", action="store_true", help="only ORB-SLAM's ORB vs plain ORB on hard frames")
+    parser.add_argument("--frames", type=int, default=10, help="frames per set for --orb")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
+    if args.orb:
+        print(f"# bench/extractor.py --orb  {args.threads} threads, median of {args.reps}, 1000 keypoints")
+        orb_comparison(args.frames, args.reps)
+        return
     image = test_image()
 
     weights = args.weights or (SHIPPED_WEIGHTS if SHIPPED_WEIGHTS.is_file() else None)
@@ -86,6 +133,7 @@ def main() -> None:
         aliked = None
         print(f"ALIKED skipped: {err}")
     uwnet_c4 = C4Augmented(uwnet)
+    orb_plain = load_extractor("orb", distribution="opencv")
 
     def backbone():
         with torch.inference_mode():
@@ -98,7 +146,8 @@ def main() -> None:
         "SuperPoint architecture extract": lambda: superpoint.extract(image),
         "XFeat extract (2k)": lambda: xfeat.extract(image),
         "UWNet C4 reference image (4 rotations)": lambda: uwnet_c4.extract(image),
-        "ORB-2000 detect+compute": lambda: orb.extract(image),
+        "ORB-2000 detect+compute (ORB-SLAM distribution)": lambda: orb.extract(image),
+        "ORB-2000 detect+compute (plain cv2)": lambda: orb_plain.extract(image),
     }
     if aliked is not None:
         fns["ALIKED-n16rot extract (2k)"] = lambda: aliked.extract(image)

@@ -238,9 +238,9 @@ def open_sequence(dataset: DictConfig, name: str, entry: str):
         return reader(name=name, **entry) if isinstance(entry, dict) else reader(entry)
     path = Path(str(root)) / entry if root else None
     if path is None or not path.exists():
-        raise MissingInput(f"Dataset {dataset.label} not found: sequence {name} expected at "
-                                f"{path if path else '<dataset.root>/' + entry}. {dataset.download} Then pass "
-                                f"dataset.root=<folder>.")
+        raise MissingInput(f"Dataset {dataset.get('label') or dataset.name} not found: sequence {name} expected "
+                           f"at {path if path else '<dataset.root>/' + entry}. {dataset.download} Then pass "
+                           f"dataset.root=<folder>.")
     return reader(path)
 
 
@@ -285,6 +285,28 @@ def _path_length(groundtruth, stamps: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
 
 
+def dataset_sequences(dataset: DictConfig) -> dict:
+    """{name: entry} of the dataset: its ``sequences`` (a dict, or a list of names), or, when null, every
+    sequence its ``discover`` function finds under ``root`` (a generic folder of sequences)."""
+    if dataset.get("sequences") is None:
+        if not dataset.get("root"):
+            raise ValueError(f"Dataset {dataset.name} needs dataset.root=<folder of sequences>.")
+        if not dataset.get("discover"):
+            raise ValueError(f"Dataset {dataset.name} lists no sequences and has no discover function.")
+        return get_method(dataset.discover)(dataset.root)
+    sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
+    return sequences if isinstance(sequences, dict) else {str(s): str(s) for s in sequences}
+
+
+def dataset_label(dataset: DictConfig, opened: dict) -> str:
+    """The table title: the dataset's label, or for a generic folder its name, size and sensor."""
+    if dataset.get("label"):
+        return str(dataset.label)
+    stereo = [s.stereo for s in opened.values()]
+    sensor = "stereo" if all(stereo) else "monocular" if not any(stereo) else "mono and stereo"
+    return f"{Path(str(dataset.root)).name}, {len(opened)} sequence(s) ({sensor})"
+
+
 def run(cfg: DictConfig, slam_run=None) -> dict:
     """Every sequence x extractor, the tables, plots and (embedded sequences) the turbidity sweep."""
     from ruslam.eval.matching_report import resolve_extractors  # noqa: PLC0415 (shared name -> extractor rules)
@@ -293,8 +315,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     out_dir = Path(cfg.out_dir)
     slam_run = slam_run or get_method(task.slam_runner)
     labels = dict(task.get("labels") or {})
-    sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
-    sequences = sequences if isinstance(sequences, dict) else {str(s): str(s) for s in sequences}
+    sequences = dataset_sequences(dataset)
     select = dataset.get("select")
     if select:  # dataset.select=[MH01,MH03]: a subset, in the given order
         unknown = [str(s) for s in select if str(s) not in sequences]
@@ -305,12 +326,14 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     extractors, skipped = resolve_extractors(list(cfg.extractors), task)
     methods = list(extractors)
     rule = OmegaConf.merge(task.failure, dataset.get("failure") or {})  # a dataset may rescale the bound
+    label = dataset_label(dataset, opened)
     results, curves = [], {}
     for name, seq in opened.items():
         seq.name = name
         for method, extractor in extractors.items():
+            slam_cfg = OmegaConf.merge(cfg.slam, (task.get("slam_options") or {}).get(method) or {})
             try:
-                estimate = slam_run(seq, extractor, cfg.slam)
+                estimate = slam_run(seq, extractor, slam_cfg)
             except RuntimeError as exc:  # a failed solve (gtsam raises RuntimeError) or mapping thread: an x cell;
                 # programming errors (TypeError, KeyError, ValueError...) propagate rather than hide as a failed run
                 log.exception("SLAM crashed on %s with %s", name, method)
@@ -319,7 +342,10 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
             if len(estimate.timestamps):
                 write_tum_trajectory(_mkdir(out_dir / "trajectories" / name) / f"{method}.txt",
                                      Trajectory(estimate.timestamps, estimate.poses))
-            result, curve = evaluate_run(seq, estimate, method, dataset.alignment, rule, task.rpe_delta)
+            else:
+                print(f"[slam] {name} / {method}: no frame got a pose, so no trajectory file is written.")
+            alignment = dataset.alignment if dataset.alignment != "auto" else ("se3" if seq.stereo else "sim3")
+            result, curve = evaluate_run(seq, estimate, method, alignment, rule, task.rpe_delta)
             results.append(result)
             curves.setdefault(name, {})[method] = curve
             print(f"[slam] {name} / {method}: " + (f"APE {result.ape:.3f} m ({result.ape_path:.2%} of the path), "
@@ -328,12 +354,12 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
                   f"{result.maps} map(s), {result.loops} loop(s), {result.fps:.1f} frames/s", flush=True)
         ref = opened[name].groundtruth
         if ref is not None:
-            plot_top_view(out_dir / "plots" / f"{name}.png", f"{dataset.label}: {name}", ref.positions,
+            plot_top_view(out_dir / "plots" / f"{name}.png", f"{label}: {name}", ref.positions,
                           {labels.get(m, m): c["aligned"] for m, c in curves.get(name, {}).items() if c})
     metrics = list(dataset.metrics)
     errors = [METRICS[k] for k in metrics if k in ("ape", "rpe")]
     others = [TITLES[k] for k in metrics if k not in ("ape", "rpe")]
-    title = f"{dataset.label}: RMSE of {' and '.join(errors)} (m)" + "".join(f", {t}" for t in others)
+    title = f"{label}: RMSE of {' and '.join(errors)} (m)" + "".join(f", {t}" for t in others)
     md, table_csv = results_table(results, list(sequences), methods, metrics, labels, title,
                                   row_label=dataset.get("row_label", "Sequence"))
     if skipped:

@@ -119,14 +119,14 @@ def intensity_centroid_angles(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     if len(xy) == 0:
         return np.zeros(0, np.float32)
     r = HALF_PATCH
-    dy, dx = np.mgrid[-r:r + 1, -r:r + 1]
+    dy, dx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float32)
     disc = dx**2 + dy**2 <= r * r + r  # the rasterised circle ORB's umax table describes
-    dx, dy = dx[disc], dy[disc]
-    padded = cv2.copyMakeBorder(image, r, r, r, r, cv2.BORDER_REFLECT_101).astype(np.float32)
-    x = np.rint(xy[:, 0]).astype(int)[:, None] + r + dx
-    y = np.rint(xy[:, 1]).astype(int)[:, None] + r + dy
-    values = padded[y, x]
-    m10, m01 = values @ dx.astype(np.float32), values @ dy.astype(np.float32)
+    moments = np.stack([(dx * disc).ravel(), (dy * disc).ravel()], axis=1)  # [31*31, 2]
+    padded = cv2.copyMakeBorder(image, r, r, r, r, cv2.BORDER_REFLECT_101)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (2 * r + 1, 2 * r + 1))
+    x, y = np.rint(xy[:, 0]).astype(int), np.rint(xy[:, 1]).astype(int)
+    patches = windows[y, x].reshape(len(xy), -1).astype(np.float32)  # patch centred on each corner
+    m10, m01 = (patches @ moments).T
     return (np.rad2deg(np.arctan2(m01, m10)) % 360).astype(np.float32)
 
 

@@ -32,8 +32,10 @@ log = logging.getLogger(__name__)
 @dataclass
 class MappingConfig:
     max_distance_binary: float = 64.0
-    max_distance_float: float = 0.7
+    max_distance_float: float = 0.5
     ratio: float = 0.8
+    sigma_binary: float = 1.0  # keypoint noise (px), as TrackingConfig
+    sigma_float: float = 1.5
     triangulation_neighbours: int = 10
     epipolar_px: float = 4.0
     min_parallax_deg: float = 1.0
@@ -55,6 +57,7 @@ class LocalMapper:
     def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None, loop_closer=None):
         self.atlas, self.cfg, self.binary, self.rig, self.loop_closer = atlas, cfg, binary, rig, loop_closer
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
+        self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.recent: list[MapPoint] = []
         self.processed = 0
 
@@ -145,7 +148,7 @@ class LocalMapper:
             a, b = i1[a], i2[b]
             X = triangulate(K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b])
             ok = triangulation_mask(X, K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b],
-                                    max_error_px=np.sqrt(CHI2_2DOF), min_parallax_deg=c.min_parallax_deg)
+                                    max_error_px=np.sqrt(CHI2_2DOF) * self.sigma, min_parallax_deg=c.min_parallax_deg)
             # single-scale keypoints: the two viewing distances must be alike (ORB-SLAM's scale check, one octave)
             ratio = np.linalg.norm(X - n.center, axis=1) / np.maximum(np.linalg.norm(X - kf.center, axis=1), 1e-9)
             ok &= (ratio < c.max_distance_ratio) & (ratio > 1.0 / c.max_distance_ratio)
@@ -253,7 +256,7 @@ class LocalMapper:
         K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)
         poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), fixed,
                                             np.stack([p.position for p in points]), oi, oj, uv, kfs[0].K,
-                                            orr, K_r, T_c0_c1, iterations=tuple(iterations))
+                                            orr, K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma)
         for k, T, f in zip(kfs, poses, fixed, strict=True):
             if not f:
                 k.T_cw = T

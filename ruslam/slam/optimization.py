@@ -86,13 +86,16 @@ def _residuals_jacobians(T_cw, X_w, uv, K, T_extra=None):
 def optimize_pose(
     T_cw: np.ndarray, X_w: np.ndarray, uv: np.ndarray, K: np.ndarray,
     uv_right: np.ndarray | None = None, K_right: np.ndarray | None = None, T_c1_c0: np.ndarray | None = None,
-    rounds: int = 4, iterations: int = 10, chi2: float = CHI2_2DOF,
+    rounds: int = 4, iterations: int = 10, chi2: float = CHI2_2DOF, sigma: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Refine a camera pose against fixed world points (Huber IRLS, ORB-SLAM's 4 rounds of outlier rejection).
 
     `uv_right` [N, 2] (NaN where absent) adds the right-camera observations of a stereo rig (`T_c1_c0` maps
-    camera-0 coordinates to camera 1). Returns (T_cw, inlier mask [N]).
+    camera-0 coordinates to camera 1). `sigma` is the keypoint noise in pixels (the Huber width and the chi2
+    test scale with it). Returns (T_cw, inlier mask [N]).
     """
+    delta = HUBER_DELTA * sigma
+    chi2 = chi2 * sigma**2
     T = T_cw.copy()
     n = len(X_w)
     inlier = np.ones(n, bool)
@@ -111,15 +114,15 @@ def optimize_pose(
             b = np.zeros(6)
             for e, Je, use in terms:
                 err = np.linalg.norm(e, axis=1)
-                w = np.where(err <= HUBER_DELTA, 1.0, HUBER_DELTA / np.maximum(err, 1e-12)) if robust else 1.0
+                w = np.where(err <= delta, 1.0, delta / np.maximum(err, 1e-12)) if robust else 1.0
                 w = w * use
                 H += np.einsum("n,nki,nkj->ij", w, Je, Je)
                 b += np.einsum("n,nki,nk->i", w, Je, e)
             if np.linalg.matrix_rank(H) < 6:
                 return T_cw.copy(), np.zeros(n, bool)
-            delta = -np.linalg.solve(H + 1e-6 * np.eye(6), b)
-            T = se3_exp(delta) @ T
-            if np.linalg.norm(delta) < 1e-7:
+            step = -np.linalg.solve(H + 1e-6 * np.eye(6), b)
+            T = se3_exp(step) @ T
+            if np.linalg.norm(step) < 1e-7:
                 break
         res, _, z = _residuals_jacobians(T, X_w, uv, K)
         e2 = np.sum(res**2, 1)
@@ -138,19 +141,21 @@ def bundle_adjustment(
     poses: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray,
     obs_uv: np.ndarray, K: np.ndarray, obs_right: np.ndarray | None = None, K_right: np.ndarray | None = None,
     T_c0_c1: np.ndarray | None = None, iterations: tuple[int, int] = (5, 10), chi2: float = CHI2_2DOF,
+    sigma: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Huber-robust BA of keyframe poses T_cw [P, 4, 4] and points [M, 3] from observations [O] (gtsam LM).
 
     `fixed` [P] marks poses held constant (the keyframes that see local points from outside the local window).
     `obs_right` [O] marks observations made by the right camera of a stereo rig. As in ORB-SLAM: a first robust
     pass, then observations with chi2 > 5.991 or behind the camera are dropped and the rest is refined again.
-    Returns (poses, points, inlier mask over observations).
+    `sigma` is the keypoint noise in pixels. Returns (poses, points, inlier mask over observations).
     """
+    chi2 = chi2 * sigma**2
     cal, cal_r = _cal(K), _cal(K_right) if K_right is not None else None
     body_r = _pose3(T_c0_c1) if T_c0_c1 is not None else None
     obs_right = np.zeros(len(obs_pose), bool) if obs_right is None else obs_right
     noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(HUBER_DELTA), gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
+        gtsam.noiseModel.mEstimator.Huber.Create(HUBER_DELTA), gtsam.noiseModel.Isotropic.Sigma(2, sigma))
     inlier = np.ones(len(obs_pose), bool)
     values = gtsam.Values()
     for i, T in enumerate(poses):

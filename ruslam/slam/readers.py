@@ -139,8 +139,11 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
 
 
 def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> None:
-    """Write TUM format through a temporary file, so an interrupted run leaves no partial file."""
+    """Write TUM format through a temporary file, so an interrupted run leaves no partial file. An empty trajectory
+    is refused: evo cannot read a TUM file without a pose."""
     path = Path(path)
+    if len(trajectory) == 0:
+        raise ValueError(f"Trajectory for {path} has no pose; not writing a TUM file evo could not read.")
     q = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat()
     table = np.column_stack([trajectory.timestamps, trajectory.positions, q])
     tmp = path.with_name(path.name + ".tmp")

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from ruslam.slam.atlas import Atlas
+from ruslam.slam.conditioning import ImageConditioning
 from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, project, triangulate
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
@@ -38,6 +39,7 @@ class SLAMConfig:
     max_frames: int | None = None
     stereo_epipolar_px: float = 2.0
     stereo_max_depth_baselines: float = 80.0
+    conditioning: ImageConditioning = field(default_factory=ImageConditioning)  # first step: e.g. CLAHE
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -57,6 +59,7 @@ class SLAMTrajectory:
     loops: list = field(default_factory=list)  # (frame index, loop frame index) of each closed loop
     merges: list = field(default_factory=list)  # (frame index, frame index in the other map) of each map merge
     map_frames: list = field(default_factory=list)  # frames with a pose in each final map, largest first
+    initialized_at: int | None = None  # index of the frame at which the first map was initialised
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -108,6 +111,8 @@ def make_frame(index, timestamp, images, extractor, sequence, stereo: bool, cfg:
     out = extractor.extract(images[0])
     kps = cam0.undistort_points(out["keypoints"]) if len(out["keypoints"]) else np.zeros((0, 2))
     if len(kps) < cfg.tracking.min_keypoints:
+        log.warning("Frame %d skipped: %d keypoints found, the minimum is %d (tracking.min_keypoints).", index,
+                    len(kps), cfg.tracking.min_keypoints)
         return None
     g = out.get("global_descriptor")
     frame = Frame(index=index, timestamp=float(timestamp), keypoints=kps.astype(np.float64),
@@ -157,6 +162,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
     timings = np.zeros(n)
     skipped = 0
+    initialized_at = None
     try:
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
             start = time.perf_counter()
@@ -164,6 +170,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
             if frame is None:
                 skipped += 1
             elif tracker.track(frame):
+                initialized_at = i if initialized_at is None else initialized_at
                 if tracker.initial_frame is not None:  # the first frame of a monocular initialisation
                     kf1, tracker.initial_frame = tracker.initial_frame, None
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
@@ -183,7 +190,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
         timestamps=np.array([r.timestamp for r in records], np.float64), poses=poses,
         frame_indices=np.array([r.index for r in records], int), num_frames=n, timings=timings,
         num_keyframes=len(final.keyframes), num_points=len(final.points), loops=list(loop_closer.loops),
-        merges=list(loop_closer.merges), map_frames=map_frames,
+        merges=list(loop_closer.merges), map_frames=map_frames, initialized_at=initialized_at,
     )
 
 
@@ -207,8 +214,5 @@ def _load_frame(i, sequence, extractor, stereo, cfg) -> Frame | None:
     except FrameReadError as err:  # the one expected condition: a missing or undecodable frame file
         log.warning("Frame %d skipped: %s", i, err)
         return None
-    frame = make_frame(i, sequence.timestamps[i], images, extractor, sequence, stereo, cfg)
-    if frame is None:
-        log.warning("Frame %d skipped: fewer than %d keypoints (black or featureless image).", i,
-                    cfg.tracking.min_keypoints)
-    return frame
+    images = [cfg.conditioning(image) for image in images]
+    return make_frame(i, sequence.timestamps[i], images, extractor, sequence, stereo, cfg)

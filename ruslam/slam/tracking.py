@@ -31,15 +31,18 @@ log = logging.getLogger(__name__)
 @dataclass
 class TrackingConfig:
     max_distance_binary: float = 64.0  # Hamming bits (of 256) for ORB
-    max_distance_float: float = 0.7  # L2 between unit descriptors (0..2); XFeat: correct 0.2-0.46, wrong 0.3-0.5
+    max_distance_float: float = 0.5  # L2 between unit descriptors (0..2); XFeat: correct 0.2-0.46, wrong 0.3-0.5
+    # (0.7 let enough wrong matches through that XFeat lost track at 3x the embedded speed, see README)
     ratio: float = 0.8  # kNN ratio test
+    sigma_binary: float = 1.0  # keypoint noise (px): Huber width and chi2 outlier test scale with it
+    sigma_float: float = 1.5  # learned extractors (XFeat: matches' epipolar error p90 2.9 px vs ORB 1.4 px)
     window_ratio: float = 0.9  # ratio test inside a search window
     window_radius: float = 15.0  # px, constant-velocity search (doubled on failure)
     local_map_radius: float = 5.0  # px, local-map search
     min_inliers: int = 30  # tracked map points for a frame to count as tracked
     init_min_matches: int = 100
     init_window: float = 100.0  # px, monocular initialisation search window
-    init_max_frames: int = 20  # restart initialisation from a newer frame after this many failures
+    init_max_frames: int = 40  # restart initialisation from a newer frame after this many (a 20 Hz start: 2 s)
     init_min_parallax_deg: float = 1.0
     min_keypoints: int = 50  # fewer (black / featureless frame): skip the frame
     kf_max_frames: int = 10  # a keyframe is due after this many frames (if tracking has weakened at all) ...
@@ -66,6 +69,7 @@ class Tracker:
         self.atlas, self.mapper, self.database, self.cfg = atlas, mapper, database, cfg
         self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
+        self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.state = "init"
         self.init_frame: Frame | None = None
         self.last: Frame | None = None
@@ -170,7 +174,12 @@ class Tracker:
             return False
         ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors, c.init_window,
                                   self.binary, self.max_distance, c.window_ratio)
+        if len(ip) < c.init_min_matches:  # a wide baseline (or a fast turn) moves points beyond the window
+            jp, jk = match_knn_ratio(ref.descriptors, frame.descriptors, self.binary, self.max_distance, c.ratio)
+            if len(jp) > len(ip):
+                ip, ik = jp, jk
         if len(ip) < c.init_min_matches:
+            # the reference is kept while it still overlaps (parallax grows), replaced once it no longer does
             if len(ip) < c.init_min_matches // 2:
                 self.init_frame = frame if len(frame) >= c.init_min_matches else None
             return False
@@ -213,7 +222,8 @@ class Tracker:
         oi, oj = np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
         poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), np.eye(len(kfs), dtype=bool)[0],
                                             np.stack([p.position for p in points]), oi, oj,
-                                            np.stack([o[2] for o in obs]), kfs[0].K, iterations=(10, 10))
+                                            np.stack([o[2] for o in obs]), kfs[0].K, iterations=(10, 10),
+                                            sigma=self.sigma)
         for k, T in zip(kfs, poses, strict=True):
             k.T_cw = T
         for p, x in zip(points, pts, strict=True):
@@ -253,8 +263,10 @@ class Tracker:
             for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
                 frame.points = [None] * len(frame)
                 if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
+                    log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
                     return True
         if self._track_reference_keyframe(frame):
+            log.debug("Frame %d: reference keyframe by descriptor.", frame.index)
             return True
         if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
             log.debug("Frame %d tracked by the local-map fallback.", frame.index)
@@ -324,6 +336,8 @@ class Tracker:
                             key=lambda p: p.id)
         self._search_points(frame, candidates, self.cfg.local_map_radius, count_visible=True)
         inliers = self._optimize(frame)
+        log.debug("Frame %d: local map, %d inliers of %d matches.", frame.index, inliers,
+                  sum(p is not None for p in frame.points))
         for p, out in zip(frame.points, frame.outliers, strict=True):
             if p is not None and not out:
                 p.found += 1
@@ -361,7 +375,7 @@ class Tracker:
         X = np.stack([frame.points[i].position for i in idx])
         uv_r = frame.right[idx] if self.rig is not None and frame.right is not None else None
         K_r, T_c1_c0 = (self.rig[0], inverse_pose(self.rig[1])) if self.rig is not None else (None, None)
-        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0)
+        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma)
         frame.T_cw = T
         frame.outliers[idx[~inl]] = True
         return int(inl.sum())

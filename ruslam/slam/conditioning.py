@@ -1,0 +1,44 @@
+"""Underwater image conditioning: the first step of the SLAM's frame pipeline, before feature extraction.
+
+Turbid water flattens contrast (back-scatter adds a veil, attenuation dims the scene), so a fixed FAST threshold or
+a learned detector's score threshold finds few keypoints. CLAHE (contrast-limited adaptive histogram equalisation,
+`cv2.createCLAHE`) stretches the contrast of each tile while the clip limit keeps it from amplifying noise.
+It works on the grey image, or on the lightness (L of CIE Lab) of a colour image so that colour is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+METHODS = ("none", "clahe")
+
+
+@dataclass(frozen=True)
+class ImageConditioning:
+    method: str = "none"  # none | clahe
+    clip_limit: float = 2.0  # CLAHE: contrast limit per tile (histogram bins clipped at this x the mean)
+    tiles: int = 8  # CLAHE: tiles per image side
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"Image conditioning method must be one of {METHODS}, got {self.method!r}.")
+        if self.clip_limit <= 0 or self.tiles < 1:
+            raise ValueError(f"CLAHE needs clip_limit > 0 and tiles >= 1, got {self.clip_limit} and {self.tiles}.")
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """The conditioned image (uint8, same shape); ``method="none"`` returns the input itself."""
+        if self.method == "none":
+            return image
+        if image.dtype != np.uint8:
+            image = np.clip(np.asarray(image, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
+        clahe = cv2.createCLAHE(clipLimit=self.clip_limit, tileGridSize=(self.tiles, self.tiles))
+        if image.ndim == 2:
+            return clahe.apply(image)
+        if image.shape[2] == 1:
+            return clahe.apply(image[..., 0])[..., None]
+        lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB)
+        lab[..., 0] = clahe.apply(np.ascontiguousarray(lab[..., 0]))
+        return cv2.cvtColor(lab, cv2.COLOR_LAB2RGB)
