@@ -198,3 +198,20 @@ def test_robustness_matrix_reports_tracking_after_init_maps_and_ape_share(tmp_pa
     assert path == pytest.approx(15 * 0.2, rel=0.02)
     table = (tmp_path / "table.md").read_text()
     assert "Robustness matrix, dev split" in table and "| turn9 | 88% | 100% | 2 |" in table
+
+
+def test_failure_rule_uses_the_path_of_the_frames_run(tmp_path):
+    """With slam.max_frames the APE bound is a share of the path actually flown, not of the whole sequence."""
+    from ruslam.eval.slam_report import run
+
+    def offset(sequence, extractor, cfg):  # 10 of the 16 frames, each pose 0.2 m off sideways, alternately
+        n = 10
+        poses = sequence.groundtruth.poses[:n].copy()
+        poses[:, 1, 3] += 0.2 * (-1) ** np.arange(n)
+        return FakeEstimate(sequence.groundtruth.timestamps[:n], poses, n, np.full(n, 0.01))
+
+    overrides = ["task=slam", "dataset=robustness", "dataset.split=dev", f"out_dir={tmp_path}", "extractors=[orb]",
+                 "dataset.select=[turn9]", f"dataset.reader.cache_dir={tmp_path}", "dataset.reader.width=48",
+                 "dataset.reader.height=36", "+dataset.splits.dev.turn9.frames=16", "slam.max_frames=10"]
+    result = run(compose("evaluate", overrides), slam_run=offset)["results"][0]
+    assert not result["ok"] and "of the 1.80 m path" in result["reason"]  # 9 steps of 0.2 m, not 15

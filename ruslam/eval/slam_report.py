@@ -267,7 +267,9 @@ def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delt
             reason = str(err)
     if not reason:
         aligned = errors.aligned.positions_xyz if errors else None
-        reason = failure_reason(tracked, aligned, gt.positions, rule, errors.ape_rmse if errors else None)
+        run_xyz = _positions_over(gt, sequence.timestamps[:frames])  # the frames run (slam.max_frames)
+        reason = failure_reason(tracked, aligned, run_xyz if len(run_xyz) > 1 else gt.positions, rule,
+                                errors.ape_rmse if errors else None)
     if reason:
         return RunResult(ok=False, reason=reason, **base), {}
     path = _path_length(gt, sequence.timestamps[:frames])
@@ -276,12 +278,17 @@ def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delt
             {"aligned": errors.aligned.positions_xyz, "reference": errors.reference.positions_xyz})
 
 
-def _path_length(groundtruth, stamps: np.ndarray) -> float:
-    """Length of the ground-truth path between the first and the last of ``stamps`` (the frames that were run)."""
+def _positions_over(groundtruth, stamps: np.ndarray) -> np.ndarray:
+    """Ground-truth positions between the first and the last of ``stamps`` (the frames that were run)."""
     if len(stamps) == 0:
-        return 0.0
+        return np.zeros((0, 3))
     inside = (groundtruth.timestamps >= stamps[0] - 1e-6) & (groundtruth.timestamps <= stamps[-1] + 1e-6)
-    xyz = groundtruth.positions[inside]
+    return groundtruth.positions[inside]
+
+
+def _path_length(groundtruth, stamps: np.ndarray) -> float:
+    """Length of the ground-truth path over the frames that were run."""
+    xyz = _positions_over(groundtruth, stamps)
     return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
 
 

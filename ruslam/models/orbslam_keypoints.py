@@ -51,8 +51,8 @@ def grid_fast(image: np.ndarray, ini_threshold: int, min_threshold: int, cell: i
     kps = fast.detect(image)
     if not kps:
         return np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
-    xy = np.array([k.pt for k in kps], np.float32)
-    score = np.array([k.response for k in kps], np.float32)
+    xy = cv2.KeyPoint_convert(kps).reshape(-1, 2)
+    score = np.fromiter((k.response for k in kps), np.float32, len(kps))
     h, w = image.shape[:2]
     inside = (xy[:, 0] >= EDGE) & (xy[:, 0] < w - EDGE) & (xy[:, 1] >= EDGE) & (xy[:, 1] < h - EDGE)
     xy, score = xy[inside], score[inside]
@@ -99,8 +99,7 @@ def quadtree_select(xy: np.ndarray, score: np.ndarray, bounds: tuple[float, floa
             code, nodes = child, n_child
             continue
         parents, inverse, counts = np.unique(code, return_inverse=True, return_counts=True)
-        kids = np.array([len(np.unique(c)) for c in np.split(child[np.argsort(inverse, kind="stable")],
-                                                             np.cumsum(counts)[:-1])])
+        kids = np.bincount(np.searchsorted(parents, np.unique(child) // 4), minlength=len(parents))
         order = np.argsort(-counts, kind="stable")  # the most crowded nodes first
         reached = nodes + np.cumsum(kids[order] - 1) >= target
         split = np.zeros(len(parents), bool)
