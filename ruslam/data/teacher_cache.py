@@ -31,6 +31,7 @@ import torch
 from pytorch_lightning.callbacks import BasePredictionWriter
 from torch.utils.data import DataLoader, Dataset
 
+from ruslam.atomic_files import atomic_write
 from ruslam.data.rgbd_sample import sample_image
 from ruslam.errors import InputError, MissingInput
 from ruslam.models.teachers import module_fingerprint
@@ -119,9 +120,7 @@ def mismatch_message(where, found, expected) -> str:
 
 
 def write_manifest(cache_dir: Path, content: dict) -> None:
-    tmp = cache_dir / f".{MANIFEST}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(content, indent=2, sort_keys=True, default=str))
-    os.replace(tmp, cache_dir / MANIFEST)
+    atomic_write(cache_dir / MANIFEST, json.dumps(content, indent=2, sort_keys=True, default=str))
 
 
 def _pid_alive(pid: int) -> bool:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -25,6 +24,7 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from ruslam.atomic_files import atomic_write as _atomic_write
 from ruslam.errors import MissingWeights
 from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
 from ruslam.eval.matching import PairResult, evaluate_pair, rotation_bin, summarize
@@ -60,12 +60,6 @@ def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
         else:
             built[name] = load_extractor(name, device=task.device, **conf)  # an explicit weights path must exist
     return built, skipped
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _bin_name(lo, hi) -> str:
