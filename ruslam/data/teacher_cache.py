@@ -220,9 +220,8 @@ class CacheWriter(BasePredictionWriter):
 def _load_item(dataset, i: int) -> dict:
     try:
         return dataset[i]
-    except Exception as err:  # noqa: BLE001 (any reader failure is reported with the index)
-        reason = f"{type(err).__name__}: {err}"
-        raise TeacherCacheError(f"Image {i} of the dataset could not be read ({reason}).") from None
+    except (InputError, OSError) as err:  # a bad or unreadable file, named with its index; a bug keeps its traceback
+        raise TeacherCacheError(f"Image {i} of the dataset could not be read ({err}).") from None
 
 
 def missing_indices(dataset, done: set[str]) -> list[int]:
