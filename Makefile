@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup test test-all train evaluate bench lint clean
+.PHONY: setup test test-slow test-all ci train evaluate bench lint clean
 
 setup: $(STAMP)
 
@@ -20,8 +20,15 @@ $(STAMP): pyproject.toml requirements-nodeps.txt
 test: $(STAMP)
 	$(PY) -m pytest
 
+test-slow: $(STAMP)
+	$(PY) -m pytest -m slow
+
 test-all: $(STAMP)
 	$(PY) -m pytest -m ''
+
+# What .ci/run runs: the fast tier, the slow tier (training resume/export/DDP, SLAM end to end, the entry points
+# in subprocesses), then ruff.
+ci: test test-slow lint
 
 train: $(STAMP)
 	$(PY) train.py

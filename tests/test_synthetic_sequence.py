@@ -88,7 +88,6 @@ def test_unknown_level_is_a_clear_error(tmp_path):
 
 
 def test_turbid_level_loses_contrast(tmp_path):
-    pytest.importorskip("ruslam.data.synthesis")
     clear = synthetic_sequence("clear", cache_dir=tmp_path, progress=False, **TINY)
     murky = synthetic_sequence("jerlov_9C", cache_dir=tmp_path, progress=False, **TINY)
     again = synthetic_sequence("jerlov_9C", cache_dir=tmp_path, progress=False, **TINY)

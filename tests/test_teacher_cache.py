@@ -202,3 +202,20 @@ def test_sigkill_mid_run_then_rerun_equals_a_clean_run(fx, tmp_path):
         got, want = rerun.read(image_id), reference.read(image_id)
         for key in want:
             np.testing.assert_array_equal(got[key], want[key])
+
+
+def test_a_bad_file_is_named_by_index_but_a_reader_bug_keeps_its_traceback(fx, tmp_path):
+    class Failing(fx["Images"]):
+        def __init__(self, error):
+            super().__init__(4)
+            self.error = error
+
+        def __getitem__(self, i):
+            if i == 3:
+                raise self.error
+            return super().__getitem__(i)
+
+    with pytest.raises(TeacherCacheError, match=r"Image 3 of the dataset could not be read \(x.png is corrupt\)"):
+        teacher_cache.missing_indices(Failing(InputError("x.png is corrupt")), set())
+    with pytest.raises(KeyError, match="depth"):
+        teacher_cache.missing_indices(Failing(KeyError("depth")), set())

@@ -31,6 +31,7 @@ import torch
 from pytorch_lightning.callbacks import BasePredictionWriter
 from torch.utils.data import DataLoader, Dataset
 
+from ruslam.atomic_files import atomic_write
 from ruslam.data.rgbd_sample import sample_image
 from ruslam.errors import InputError, MissingInput
 from ruslam.models.teachers import module_fingerprint
@@ -119,9 +120,7 @@ def mismatch_message(where, found, expected) -> str:
 
 
 def write_manifest(cache_dir: Path, content: dict) -> None:
-    tmp = cache_dir / f".{MANIFEST}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(content, indent=2, sort_keys=True, default=str))
-    os.replace(tmp, cache_dir / MANIFEST)
+    atomic_write(cache_dir / MANIFEST, json.dumps(content, indent=2, sort_keys=True, default=str))
 
 
 def _pid_alive(pid: int) -> bool:
@@ -221,9 +220,8 @@ class CacheWriter(BasePredictionWriter):
 def _load_item(dataset, i: int) -> dict:
     try:
         return dataset[i]
-    except Exception as err:  # noqa: BLE001 (any reader failure is reported with the index)
-        reason = f"{type(err).__name__}: {err}"
-        raise TeacherCacheError(f"Image {i} of the dataset could not be read ({reason}).") from None
+    except (InputError, OSError) as err:  # a bad or unreadable file, named with its index; a bug keeps its traceback
+        raise TeacherCacheError(f"Image {i} of the dataset could not be read ({err}).") from None
 
 
 def missing_indices(dataset, done: set[str]) -> list[int]:

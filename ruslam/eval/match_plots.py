@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from ruslam.atomic_files import atomic_path, atomic_write
 
 CORRECT = (40, 220, 40)  # RGB green
 WRONG = (230, 40, 40)  # RGB red
@@ -17,9 +18,7 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
     ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError(f"Could not encode {path} as PNG.")
-    tmp = Path(path).with_name(Path(path).name + ".tmp")
-    tmp.write_bytes(data.tobytes())
-    os.replace(tmp, path)
+    atomic_write(path, data.tobytes())
 
 
 def draw_matches(
@@ -66,7 +65,6 @@ def plot_mma(curves: dict[str, list[float]], thresholds, path: Path, title: str)
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    tmp = Path(path).with_name(Path(path).name + ".tmp")
-    fig.savefig(tmp, format="png", dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
     plt.close(fig)
-    os.replace(tmp, path)

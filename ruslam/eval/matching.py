@@ -19,8 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
+
+from ruslam.slam.feature_matching import descriptor_distances
 
 THRESHOLDS = tuple(range(1, 11))
 ROTATION_BINS = ((0.0, 30.0), (30.0, 90.0), (90.0, 180.0))
@@ -50,32 +51,17 @@ def cap_keypoints(features: dict, max_keypoints: int) -> dict:
     return {k: (np.asarray(v)[keep] if k in ("keypoints", "scores", "descriptors") else v) for k, v in features.items()}
 
 
-def _unpack_bits(desc: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.unpackbits(np.ascontiguousarray(desc, dtype=np.uint8), axis=1).astype(np.float32))
-
-
-def descriptor_distances(desc1: np.ndarray, desc2: np.ndarray, binary: bool) -> torch.Tensor:
-    """[N1, N2] distances for nearest-neighbour search: Hamming (number of differing bits, exact) for packed
-    uint8 descriptors, squared L2 for float ones (one matrix product: the 2,000 x 2,000 case stays fast)."""
-    if binary:
-        a, b = _unpack_bits(desc1), _unpack_bits(desc2)
-    else:
-        a = torch.from_numpy(np.ascontiguousarray(desc1, dtype=np.float32))
-        b = torch.from_numpy(np.ascontiguousarray(desc2, dtype=np.float32))
-    # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b; on {0, 1} vectors this is |a xor b|, exact in float32 up to 2^24 bits.
-    return (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * (a @ b.T)
-
-
 def mutual_nearest_neighbours(desc1: np.ndarray, desc2: np.ndarray, binary: bool) -> np.ndarray:
-    """Index pairs [M, 2] (i in desc1, j in desc2) that are each other's nearest neighbour."""
+    """Index pairs [M, 2] (i in desc1, j in desc2) that are each other's nearest neighbour (Hamming for packed
+    binary descriptors, L2 for float ones: the SLAM's `descriptor_distances`, one matrix product)."""
     if len(desc1) == 0 or len(desc2) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    dist = descriptor_distances(desc1, desc2, binary)
-    nn12 = dist.argmin(dim=1)
-    nn21 = dist.argmin(dim=0)
-    idx1 = torch.arange(len(nn12))
+    dist = descriptor_distances(np.asarray(desc1), np.asarray(desc2), binary)
+    nn12 = dist.argmin(axis=1)
+    nn21 = dist.argmin(axis=0)
+    idx1 = np.arange(len(nn12))
     mutual = nn21[nn12] == idx1
-    return torch.stack([idx1[mutual], nn12[mutual]], dim=1).numpy()
+    return np.stack([idx1[mutual], nn12[mutual]], axis=1).astype(np.int64)
 
 
 @dataclass

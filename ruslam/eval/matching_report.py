@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -25,6 +24,7 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from ruslam.atomic_files import atomic_write
 from ruslam.errors import MissingWeights
 from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
 from ruslam.eval.matching import PairResult, cap_keypoints, evaluate_pair, rotation_bin, summarize
@@ -82,12 +82,6 @@ def row_labels(task: DictConfig, names) -> dict:
     labels.update({mode_key(n, m): f"{labels.get(n, n)} + C4 TTA" for n in names for m in rotation_modes(task)
                    if m != "none"})
     return labels
-
-
-def atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def bin_name(lo, hi) -> str:

@@ -17,7 +17,6 @@ import io
 import json
 import logging
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 from hydra.utils import get_method, instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from ruslam.atomic_files import atomic_path, atomic_write
 from ruslam.config_checks import SLAM_METRICS as METRICS
 from ruslam.errors import InputError, MissingInput
 from ruslam.eval.trajectory import evaluate_trajectory
@@ -212,19 +212,10 @@ def plot_sweep(path: Path, results: list[RunResult], levels: list[str], methods:
 def _save(fig, path: Path) -> None:
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
     fig.tight_layout()
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    tmp.replace(path)
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 # ----------------------------------------------------------------------------------------------------- run
@@ -371,15 +362,15 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
                                   row_label=dataset.get("row_label", "Sequence"))
     if skipped:
         md += "\nSkipped:\n" + "".join(f"- {labels.get(n, n)} (`{n}`): {why}\n" for n, why in skipped.items())
-    _atomic_write(out_dir / "table.md", md)
-    _atomic_write(out_dir / "table.csv", table_csv)
+    atomic_write(out_dir / "table.md", md)
+    atomic_write(out_dir / "table.csv", table_csv)
     runs_md, runs_csv = runs_table(results, labels)
-    _atomic_write(out_dir / "runs.md", runs_md)
-    _atomic_write(out_dir / "runs.csv", runs_csv)
+    atomic_write(out_dir / "runs.md", runs_md)
+    atomic_write(out_dir / "runs.csv", runs_csv)
     if dataset.get("sweep", False) and methods:
         plot_sweep(out_dir / "sweep.png", results, list(sequences), methods, labels)
     summary = {"results": [asdict(r) for r in results], "skipped": skipped, "table": md}
-    _atomic_write(out_dir / "results.json", json.dumps(summary, indent=2, default=float))
+    atomic_write(out_dir / "results.json", json.dumps(summary, indent=2, default=float))
     print(md)
     return summary
 

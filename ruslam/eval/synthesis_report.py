@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 from pathlib import Path
 
 import cv2
@@ -33,6 +32,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from ruslam.atomic_files import atomic_write
 from ruslam.data.background_light import background_light_pool, list_images, read_rgb
 from ruslam.data.synthesis import attenuate_eq1
 from ruslam.data.water import check_water_type
@@ -79,12 +79,6 @@ def realism(summary: dict, real: dict) -> dict:
     diff = {m: abs(summary["mean"][m] - real["mean"][m]) for m in METRICS}
     z = [diff[m] / max(real["std"][m], 1e-12) for m in REALISM_METRICS]
     return {"abs_diff": diff, "distance": float(np.sqrt(np.mean(np.square(z))))}
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
 
 
 def markdown_table(results: dict, labels: dict) -> str:
@@ -213,8 +207,8 @@ def _run(cfg: DictConfig) -> dict:
     header = (f"# Synthesis quality (Table 1 layout)\n\n{len(indices)} images of {data.get('label', 'source')} at "
               f"{height}x{width}; background light: {light_folder or 'embedded default pool'} ({len(pool)} "
               f"entries); PSF {ours.blur_angle_deg:g} deg / {ours.blur_length:g} px; mean ± std over images.\n\n")
-    _atomic_write(out_dir / "table.md", (header + markdown_table(results, labels)).encode())
-    _atomic_write(out_dir / "table.csv", csv_table(results, labels).encode())
+    atomic_write(out_dir / "table.md", (header + markdown_table(results, labels)).encode())
+    atomic_write(out_dir / "table.csv", csv_table(results, labels).encode())
     titles = ["in-air", *(f"ours {w}" for w in grid_types), "UWCNN-style"] + (["real"] if real_images else [])
-    _atomic_write(out_dir / "grid.png", grid_png(grid_rows, titles))
+    atomic_write(out_dir / "grid.png", grid_png(grid_rows, titles))
     return {"results": results, "labels": labels, "out_dir": str(out_dir)}

@@ -10,11 +10,11 @@ CLI: ``python -m ruslam.models.export CHECKPOINT.ckpt OUT.pt [--onnx OUT.onnx --
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import torch
 
+from ruslam.atomic_files import atomic_path
 from ruslam.errors import InputError, MissingWeights
 from ruslam.models.uwnet import UWNet
 
@@ -23,10 +23,8 @@ VERSION = 1
 
 
 def _atomic_save(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _load(path: Path) -> dict:
@@ -111,14 +109,11 @@ ONNX_OUTPUTS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
 def export_onnx(net: UWNet, path: str | Path, height: int = 480, width: int = 640, opset: int = 17) -> Path:
     """ONNX graph of the inference path (DCNs via the grid_sample fast path) for a fixed HxW, dynamic batch."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     wrapper = _TupleOutputs(net).eval()  # export restores the wrapper's mode recursively: keep it eval
     dummy = torch.rand(1, 3, height, width)
-    with torch.no_grad():
+    with torch.no_grad(), atomic_path(path) as tmp:
         torch.onnx.export(wrapper, (dummy,), str(tmp), input_names=["image"], output_names=list(ONNX_OUTPUTS),
                           opset_version=opset, dynamic_axes={"image": {0: "batch"}}, dynamo=False)
-    os.replace(tmp, path)
     return path
 
 

@@ -145,3 +145,25 @@ def detect_keypoints(
             ys, xs = ys[idx], xs[idx]
         out.append((torch.stack([xs, ys], dim=-1).float(), scores))
     return out
+
+
+def decode_sparse(
+    logits: torch.Tensor, dense_descriptors: torch.Tensor, size: tuple[int, int], conf: dict, stride: int = 8,
+    reliability: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The one dense-to-sparse decoding of the learned extractors (SuperPoint, XFeat, UWNet), one image:
+    cell logits [1, stride^2+1, h, w] and dense descriptors [1, D, h, w] -> keypoints [N, 2] (x, y) in the
+    (h*stride, w*stride) input cropped to `size`, scores [N], unit descriptors [N, D].
+
+    `conf` gives nms_radius, detection_threshold, border and max_keypoints. With `reliability` [1, 1, h, w]
+    (XFeat), the top-k is taken after weighting each heatmap score by the reliability at the keypoint.
+    """
+    h, w = size
+    heat = cell_logits_to_heatmap(logits, stride)[:, :h, :w].contiguous()
+    top_k = 0 if reliability is not None else conf["max_keypoints"]
+    (xy, scores), = detect_keypoints(heat, conf["nms_radius"], conf["detection_threshold"], top_k, conf["border"])
+    if reliability is not None:
+        scores = scores * sample_dense(reliability, xy[None], stride)[0, :, 0]
+        order = scores.argsort(descending=True)[: conf["max_keypoints"] or None]
+        xy, scores = xy[order], scores[order]
+    return xy, scores, sample_descriptors(dense_descriptors, xy[None], stride)[0]

@@ -15,9 +15,7 @@ import torch.nn.functional as F
 from ruslam.models.export import load_uwnet
 from ruslam.models.extractor import (
     Extractor,
-    cell_logits_to_heatmap,
-    detect_keypoints,
-    sample_descriptors,
+    decode_sparse,
     to_float_rgb,
 )
 
@@ -64,11 +62,8 @@ class UWNetExtractor(Extractor):
         if (nh, nw) != (h, w):
             x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
         out = self.net(x.clamp(0, 1))
-        heat = cell_logits_to_heatmap(out["keypoint_logits"], STRIDE)
-        c = self.conf
-        (xy, scores), = detect_keypoints(heat, c["nms_radius"], c["detection_threshold"], c["max_keypoints"],
-                                         c["border"])
-        desc = sample_descriptors(out["dense_descriptors"], xy[None], STRIDE)[0]
+        xy, scores, desc = decode_sparse(out["keypoint_logits"], out["dense_descriptors"], (nh, nw), self.conf,
+                                         STRIDE)
         scale = xy.new_tensor([w / nw, h / nh])
         xy = (xy + 0.5) * scale - 0.5
         return {

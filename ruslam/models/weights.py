@@ -16,6 +16,7 @@ from urllib.parse import urlparse
 import torch
 import torch.nn as nn
 
+from ruslam.atomic_files import atomic_path
 from ruslam.errors import InputError, MissingWeights
 
 CACHE_ENV = "RUSLAM_CACHE"
@@ -56,22 +57,16 @@ def resolve_weights(source: str | Path, sha256: str | None = None, cache_dir: st
     if target.is_file():
         _check_hash(target, sha256)
         return target
-    cache.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.part")
     try:
-        with urllib.request.urlopen(source, timeout=30) as response, open(tmp, "wb") as out:
-            shutil.copyfileobj(response, out)
-        _check_hash(tmp, sha256, shown_as=source)
+        with atomic_path(target) as tmp:  # a failed download or a wrong hash leaves no file behind
+            with urllib.request.urlopen(source, timeout=30) as response, open(tmp, "wb") as out:
+                shutil.copyfileobj(response, out)
+            _check_hash(tmp, sha256, shown_as=source)
     except OSError as err:  # URLError, timeouts and disk errors are all OSErrors
-        tmp.unlink(missing_ok=True)
         raise MissingWeights(
             f"Could not download weights from {source} ({err}); fetch the file on a machine with internet and put "
             f"it at {target} (or pass its local path)."
         ) from None
-    except ValueError:
-        tmp.unlink(missing_ok=True)
-        raise
-    os.replace(tmp, target)
     return target
 
 

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ruslam.atomic_files import atomic_path
 from ruslam.errors import InputError, MissingInput
 from ruslam.slam.camera import Camera, read_yaml
 
@@ -139,16 +140,17 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
 
 
 def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> None:
-    """Write TUM format through a temporary file, so an interrupted run leaves no partial file. An empty trajectory
-    is refused: evo cannot read a TUM file without a pose."""
-    path = Path(path)
+    """TUM format ``timestamp tx ty tz qx qy qz qw`` by evo's writer (the files evo_ape reads), through a
+    temporary file so an interrupted run leaves no partial file. An empty trajectory is refused: evo cannot read a
+    TUM file without a pose."""
+    from evo.core.trajectory import PoseTrajectory3D  # noqa: PLC0415 (evo only when writing)
+    from evo.tools.file_interface import write_tum_trajectory_file  # noqa: PLC0415
+
     if len(trajectory) == 0:
         raise ValueError(f"Trajectory for {path} has no pose; not writing a TUM file evo could not read.")
-    q = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat()
-    table = np.column_stack([trajectory.timestamps, trajectory.positions, q])
-    tmp = path.with_name(path.name + ".tmp")
-    np.savetxt(tmp, table, fmt="%.9f", header="timestamp tx ty tz qx qy qz qw")
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        write_tum_trajectory_file(tmp, PoseTrajectory3D(poses_se3=list(trajectory.poses),
+                                                        timestamps=trajectory.timestamps))
 
 
 def read_euroc_groundtruth(path: str | Path, T_body_cam: np.ndarray | None = None) -> Trajectory:

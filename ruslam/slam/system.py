@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from ruslam.slam.atlas import Atlas
@@ -24,7 +23,7 @@ from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, proj
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, inverse_pose
-from ruslam.slam.readers import FrameReadError
+from ruslam.slam.readers import FrameReadError, Trajectory, write_tum_trajectory
 from ruslam.slam.tracking import Tracker, TrackingConfig
 
 log = logging.getLogger(__name__)
@@ -78,16 +77,8 @@ class SLAMTrajectory:
 
 
 def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
-    """TUM format ``timestamp tx ty tz qx qy qz qw``, written to a temporary name and then renamed."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
-    table = np.column_stack([timestamps, poses[:, :3, 3] if len(poses) else np.zeros((0, 3)), q])
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        f.write("# timestamp tx ty tz qx qy qz qw\n")
-        np.savetxt(f, table, fmt="%.9f")
-    tmp.replace(path)
+    """TUM format ``timestamp tx ty tz qx qy qz qw`` (`ruslam.slam.readers.write_tum_trajectory`)."""
+    write_tum_trajectory(path, Trajectory(timestamps, poses))
 
 
 def as_config(cfg) -> SLAMConfig:

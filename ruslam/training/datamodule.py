@@ -50,11 +50,8 @@ class DistillationDataset(Dataset):
         targets = {k: torch.from_numpy(v) for k, v in self.cache.read(str(item["id"])).items()}
         rgb = torch.from_numpy(np.ascontiguousarray(item["image"], np.float32)).permute(2, 0, 1)
         epoch = self.epoch if self.vary_per_epoch else 0
-        if self.synthesis is not None:
-            depth = np.asarray(item["depth"], np.float32)
-            finite = np.isfinite(depth)
-            far = float(depth[finite].max()) if finite.any() else 10.0
-            depth = torch.from_numpy(np.where(finite, depth, far).astype(np.float32))
+        if self.synthesis is not None:  # invalid depth (NaN) stays invalid: eq. 4 shows it as infinitely far
+            depth = torch.from_numpy(np.ascontiguousarray(item["depth"], np.float32))
             rgb = self.synthesis(rgb[None], depth[None], [index + epoch * len(self.source)])[0].float()
         gen = seeded_generator(self.seed, epoch, index)
         if self.photometric is not None:
@@ -153,7 +150,17 @@ class DistillationDataModule(pl.LightningDataModule):
         for source in (self._source(), self._val_source()):
             if source is not None:
                 build_cache(source, teacher, self.cache_dir, config=self.cache_config,
-                            batch_size=self.teacher_batch_size)
+                            batch_size=self.teacher_batch_size, **self._cache_device())
+
+    def _cache_device(self) -> dict:
+        """The teacher runs on the training accelerator, on this process's device. Lightning calls prepare_data
+        on one process per node while the others wait, so the cache is built by one device, not all ranks."""
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return {}
+        device = trainer.strategy.root_device
+        return {"accelerator": {"cuda": "gpu"}.get(device.type, device.type),
+                "devices": [device.index] if device.index is not None else 1}
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:

@@ -16,7 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ruslam.errors import MissingWeights
-from ruslam.models.extractor import Extractor, cell_logits_to_heatmap, detect_keypoints, sample_descriptors, to_gray
+from ruslam.models.extractor import Extractor, decode_sparse, to_gray
 from ruslam.models.weights import default_cache_dir, load_state_dict, load_strict, resolve_weights
 
 MAGICLEAP_URL = "https://github.com/magicleap/SuperPointPretrainedNetwork/raw/master/superpoint_v1.pth"
@@ -114,11 +114,7 @@ class SuperPoint(Extractor):
         x = torch.from_numpy(grey)[None, None].to(self.device)
         x = F.pad(x, (0, -w % STRIDE, 0, -h % STRIDE), mode="replicate")  # cell layout needs multiples of 8
         logits, desc = self.net(x)
-        heat = cell_logits_to_heatmap(logits)[:, :h, :w].contiguous()
-        c = self.conf
-        (xy, scores), = detect_keypoints(heat, c["nms_radius"], c["detection_threshold"], c["max_keypoints"],
-                                         c["border"])
-        descriptors = sample_descriptors(desc, xy[None], STRIDE)[0]
+        xy, scores, descriptors = decode_sparse(logits, desc, (h, w), self.conf, STRIDE)
         return {
             "keypoints": xy.cpu().numpy().astype(np.float32),
             "scores": scores.cpu().numpy().astype(np.float32),

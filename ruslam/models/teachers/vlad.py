@@ -13,7 +13,6 @@ that ``load_extractor("xfeat")`` returns a global descriptor out of the box; ref
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy.cluster.vq import kmeans2
 
+from ruslam.atomic_files import atomic_path
 from ruslam.data.rgbd_sample import sample_image
 from ruslam.errors import InputError, MissingInput
 
@@ -54,11 +54,8 @@ def load_codebook(path: str | Path, num_clusters: int, dim: int) -> np.ndarray:
 
 def save_codebook(codebook: np.ndarray, path: str | Path) -> None:
     """Write atomically (temp file + rename): a crash never leaves a truncated codebook."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npy")
-    np.save(tmp, np.ascontiguousarray(codebook, dtype=np.float32))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.save(tmp, np.ascontiguousarray(codebook, dtype=np.float32))
 
 
 def vlad_aggregate(dense: torch.Tensor, codebook: torch.Tensor, power: float = 0.5) -> torch.Tensor:

@@ -27,10 +27,7 @@ import torch.nn.functional as F
 
 from ruslam.models.extractor import (
     Extractor,
-    cell_logits_to_heatmap,
-    detect_keypoints,
-    sample_dense,
-    sample_descriptors,
+    decode_sparse,
     to_float_rgb,
 )
 from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
@@ -123,13 +120,7 @@ class XFeat(Extractor):
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].to(self.device)
         x = pad_to_multiple(x, STRIDE)  # the cell layout needs multiples of 8; outputs are cropped below
         logits, descriptors, reliability = self.teacher.run(x)
-        heat = cell_logits_to_heatmap(logits)[:, :h, :w].contiguous()
-        c = self.conf
-        (xy, scores), = detect_keypoints(heat, c["nms_radius"], c["detection_threshold"], 0, c["border"])
-        scores = scores * sample_dense(reliability, xy[None], STRIDE)[0, :, 0]
-        order = scores.argsort(descending=True)[: c["max_keypoints"] or None]
-        xy, scores = xy[order], scores[order]
-        desc = sample_descriptors(descriptors, xy[None], STRIDE)[0]
+        xy, scores, desc = decode_sparse(logits, descriptors, (h, w), self.conf, STRIDE, reliability)
         out = {
             "keypoints": xy.cpu().numpy().astype(np.float32),
             "scores": scores.cpu().numpy().astype(np.float32),
