@@ -8,11 +8,13 @@ STAMP := $(VENV)/.installed
 
 setup: $(STAMP)
 
-# Rebuilt when missing or older than pyproject.toml.
-$(STAMP): pyproject.toml
+# Rebuilt when missing or older than pyproject.toml or requirements-nodeps.txt (pinned wheels whose declared
+# requirements clash with ours: installed without resolving, see that file).
+$(STAMP): pyproject.toml requirements-nodeps.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade pip
 	$(PY) -m pip install -e '.[dev]'
+	$(PY) -m pip install --no-deps -r requirements-nodeps.txt
 	touch $(STAMP)
 
 test: $(STAMP)

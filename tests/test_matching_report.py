@@ -50,6 +50,10 @@ def test_folder_run_writes_table_plot_pictures_and_skip_notes(tmp_path):
         o = res["overall"]
         assert 0 <= o["rep"] <= 100 and 0 <= o["ms"] <= 100 and o["mma"] == pytest.approx(o["mma_curve"][2])
         assert np.all(np.diff(o["mma_curve"]) >= 0)  # MMA can only grow with the threshold
+    # the header states the median zoom of the pairs (around 1 with the default builder)
+    zooms = report["zooms"]
+    assert len(zooms) == 6 and 0.7 < np.median(zooms) < 1.3
+    assert f"median zoom {np.median(zooms):.2f}x" in (out / "table.md").read_text().splitlines()[0]
 
 
 def test_unknown_extractor_is_one_sentence_before_any_work(tmp_path):
@@ -134,3 +138,21 @@ def test_weights_file_extractor_is_evaluated(tmp_path):
                                f"extractors=[{weights}]", f"out_dir={tmp_path / 'out2'}", *SMALL])
     report = run(cfg)
     assert report["pictures"] and all(p.startswith("matches/no_am_dcn.pt_") for p in report["pictures"])
+
+
+def test_rotation_tta_rows_beside_the_plain_ones(tmp_path):
+    src = write_images(tmp_path / "src", 2)
+    common = ["task=matching", "dataset=upatches", f"dataset.root={src}", "dataset.num_images=2",
+              "extractors=[orb,xfeat]", *SMALL]
+    cfg = compose("evaluate", [*common, "task.rotation_tta=[none,c4]", f"out_dir={tmp_path / 'out'}"])
+    report = run(cfg)
+    assert list(report["results"]) == ["orb", "orb+c4", "xfeat", "xfeat+c4"]
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert "| ORB + C4 TTA |" in table and "| XFeat + C4 TTA |" in table
+    # the plain rows equal a run without the option (image 2 and the upright reference are shared)
+    alone = run(compose("evaluate", [*common, f"out_dir={tmp_path / 'alone'}"]))
+    assert alone["results"]["xfeat"]["overall"] == report["results"]["xfeat"]["overall"]
+    # the C4 reference holds the four rotations' keypoints
+    assert report["results"]["xfeat+c4"]["overall"]["keypoints"] > report["results"]["xfeat"]["overall"]["keypoints"]
+    with pytest.raises(ValueError, match="task.rotation_tta must be none, c4 or a list of both, got 'c8'"):
+        run(compose("evaluate", [*common, "task.rotation_tta=c8", f"out_dir={tmp_path / 'bad'}"]))

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ruslam.data.hpatches import HPatches, rotation_from_homography
+from ruslam.data.hpatches import HPatches, rotation_from_homography, zoom_from_homography
 from ruslam.data.upatches import build_upatches, sample_homography, upatches_from_folder
 from ruslam.eval.matching import inside_image, warp_points
 
@@ -18,11 +18,11 @@ def write_images(folder, n, hw=(50, 70)):
 
 
 @pytest.mark.parametrize("max_rot", [180.0, 20.0])
-def test_sampled_views_stay_inside_and_rotation_is_recorded(max_rot):
+def test_fit_inside_views_stay_inside_and_rotation_is_recorded(max_rot):
     rng = np.random.default_rng(0)
     angles = []
     for _ in range(200):
-        H, angle = sample_homography(rng, HW, max_rotation_deg=max_rot, perspective=0.1)
+        H, angle = sample_homography(rng, HW, max_rotation_deg=max_rot, perspective=0.1, fit_inside=True)
         # every corner of image 2 sees a point of image 1
         corners = np.array([[-0.5, -0.5], [79.5, -0.5], [79.5, 59.5], [-0.5, 59.5]])
         back = warp_points(corners, np.linalg.inv(H))
@@ -31,8 +31,76 @@ def test_sampled_views_stay_inside_and_rotation_is_recorded(max_rot):
     angles = np.abs(angles)
     assert angles.max() <= max_rot and angles.max() > 0.8 * max_rot  # the whole range is used
     for _ in range(20):  # without perspective jitter the content rotation measured from H is the recorded one
-        H, angle = sample_homography(rng, HW, max_rotation_deg=max_rot, perspective=0.0)
+        H, angle = sample_homography(rng, HW, max_rotation_deg=max_rot, perspective=0.0, fit_inside=True)
         assert rotation_from_homography(H, HW) == pytest.approx(angle, abs=1e-4)
+
+
+def test_fit_inside_forces_a_zoom_in_and_the_default_draws_zoom_around_one():
+    rng = np.random.default_rng(0)
+    hw = (480, 640)
+    inside = [zoom_from_homography(sample_homography(rng, hw, fit_inside=True)[0], hw) for _ in range(300)]
+    free = [zoom_from_homography(sample_homography(rng, hw, perspective=0.0)[0], hw) for _ in range(300)]
+    assert min(inside) > 1.0 and np.median(inside) > 1.5  # the first builder: always a zoom-in
+    assert 0.8 - 1e-9 <= min(free) and max(free) <= 1.25 + 1e-9  # log-uniform in zoom_range
+    assert np.median(free) == pytest.approx(1.0, abs=0.05)
+    assert np.mean(np.log(free)) == pytest.approx(0.0, abs=0.03)  # symmetric in log: as many zoom-ins as outs
+    # with perspective jitter, the zoom at the centre stays near the drawn range
+    jittered = [zoom_from_homography(sample_homography(rng, hw)[0], hw) for _ in range(300)]
+    assert 0.6 < min(jittered) and max(jittered) < 1.6 and abs(np.median(jittered) - 1) < 0.1
+
+
+def test_zoom_from_homography_of_a_known_similarity():
+    s, t = 1.5, np.radians(30)
+    H = np.array([[s * np.cos(t), -s * np.sin(t), 7], [s * np.sin(t), s * np.cos(t), -3], [0, 0, 1]])
+    assert zoom_from_homography(H, (60, 80)) == pytest.approx(1.5)
+    assert zoom_from_homography(np.linalg.inv(H), (60, 80)) == pytest.approx(1 / 1.5)
+
+
+def test_default_views_have_borders_that_the_shared_view_filter_drops():
+    rng = np.random.default_rng(3)
+    corners = np.array([[-0.5, -0.5], [79.5, -0.5], [79.5, 59.5], [-0.5, 59.5]])
+    outside, overlap = 0, []
+    ys, xs = np.mgrid[0:60, 0:80]
+    grid = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
+    for _ in range(100):
+        H, _ = sample_homography(rng, HW)
+        outside += not inside_image(warp_points(corners, np.linalg.inv(H)), HW).all()
+        overlap.append(inside_image(warp_points(grid, np.linalg.inv(H)), HW).mean())
+    assert outside > 50  # most views see beyond image 1 (borders allowed)
+    assert min(overlap) > 0.4 and np.median(overlap) > 0.6  # yet every pair shares a large view
+
+
+def test_border_pixels_come_from_outside_image_one(tmp_path):
+    # image 1 bright everywhere: a keypoint-free check that the invalid part of image 2 is exactly what maps
+    # outside image 1 (the part the shared-view filter removes), and nothing is black-filled
+    img = np.full((60, 80, 3), 200, np.uint8)
+    img[:, :40] = 90
+    ds = HPatches(build_upatches([("a", img)], tmp_path / "u", {"source": "test"}, num_warps=5, size=HW), size=None)
+    ys, xs = np.mgrid[0:60, 0:80]
+    grid = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
+    seen_border = False
+    for i in range(len(ds)):
+        pair = ds[i]
+        valid = inside_image(warp_points(grid, np.linalg.inv(pair["H"])), HW).reshape(HW)
+        seen_border |= not valid.all()
+        assert pair["image2"].min() >= 90 - 1  # replicated edges, no black fill
+    assert seen_border
+
+
+def test_old_mode_stays_available_and_is_recorded(tmp_path):
+    img = (np.random.default_rng(0).random((60, 80, 3)) * 255).astype(np.uint8)
+    old = build_upatches([("a", img)], tmp_path / "old", {"source": "t"}, num_warps=4, size=HW, fit_inside=True)
+    ds = HPatches(old, size=None)
+    corners = np.array([[-0.5, -0.5], [79.5, -0.5], [79.5, 59.5], [-0.5, 59.5]])
+    for i in range(len(ds)):
+        back = warp_points(corners, np.linalg.inv(ds[i]["H"]))
+        assert inside_image(back - np.sign(back - [40, 30]) * 1e-6, HW).all()
+        assert ds[i]["zoom"] > 1.0
+    import json
+    manifest = json.loads((old / "upatches.json").read_text())
+    assert manifest["fit_inside"] is True and "scale_range" in manifest and "zoom_range" not in manifest
+    with pytest.raises(ValueError, match="zoom_range must satisfy"):
+        build_upatches([("a", img)], tmp_path / "bad", {"source": "t"}, size=HW, zoom_range=(1.2, 0.8))
 
 
 def test_warped_content_follows_the_homography(tmp_path):

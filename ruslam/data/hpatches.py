@@ -67,6 +67,17 @@ def rotation_from_homography(H: np.ndarray, hw1: tuple[int, int]) -> float:
     return float(np.degrees(np.arctan2(d[1], d[0])))
 
 
+def zoom_from_homography(H: np.ndarray, hw2: tuple[int, int]) -> float:
+    """Linear magnification of image 2 over image 1 at the centre of image 2: sqrt |det J| of H there."""
+    Hinv = np.linalg.inv(H)
+    c = Hinv @ np.array([(hw2[1] - 1) / 2, (hw2[0] - 1) / 2, 1.0])
+    x = c / c[2]
+    p = H @ x
+    # Jacobian of (u, v) = (p0 / p2, p1 / p2) with respect to (x, y)
+    J = (H[:2, :2] * p[2] - np.outer(p[:2], H[2, :2])) / p[2] ** 2
+    return float(np.sqrt(abs(np.linalg.det(J))))
+
+
 @dataclass
 class Sequence:
     name: str
@@ -131,7 +142,7 @@ class HPatches:
 
     def __getitem__(self, i: int) -> dict:
         """{"sequence", "name", "image1", "image2" (uint8 RGB at `size`), "H" (image 1 -> 2 at `size`),
-        "rotation_deg"}."""
+        "rotation_deg", "zoom" (magnification of image 2 over image 1 at its centre, `zoom_from_homography`)}."""
         s, k = self.pairs[i]
         seq = self.sequences[s]
         image1, image2 = read_image(seq.images[0]), read_image(seq.images[k + 1])
@@ -147,4 +158,5 @@ class HPatches:
             "image2": resize_image(image2, self.size),
             "H": H,
             "rotation_deg": float(rotation),
+            "zoom": zoom_from_homography(H, self.size or hw2),
         }

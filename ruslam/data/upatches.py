@@ -3,9 +3,16 @@
 The paper's Upatches is 30 real underwater images (UIEB) with homography-warped copies, rotation up to 180°.
 Each source image becomes a folder ``v_<id>`` with ``1.ppm`` (the source resized to ``size``), ``2.ppm`` ...
 ``N.ppm`` (warps of it), ``H_1_k`` and ``rotation_deg.txt`` (the sampled in-plane rotation of each pair, so results
-can be binned by rotation). Homographies are sampled so that every warped image is filled by the source (the
-quadrilateral it sees lies inside image 1: no black borders), which is why rotation forces a zoom-in: a rotated
-frame only fits inside the source when shrunk.
+can be binned by rotation). Two ways to sample the homographies:
+
+- ``fit_inside=False`` (default): image k is image 1 rotated, zoomed by a factor drawn log-uniformly in
+  ``zoom_range`` (0.8-1.25: around 1), with perspective jitter and a small shift. Image k may then show places
+  outside image 1 (filled by replicating the edge); they are invalid, and the evaluation's shared-view filter
+  drops every keypoint there, so no threshold is silently rescaled.
+- ``fit_inside=True`` (the first builder): the quadrilateral image k sees lies inside image 1 (no borders). A
+  rotated frame only fits inside the source when shrunk, so rotation forces a zoom-in (1.0-2.4x, median ~1.75x
+  at 480x640 with ``scale_range`` 0.7-1.0 of the largest fit), and a 3 px threshold in image k is then only
+  3/zoom px in image 1.
 
 Sources: a folder of real images (`upatches_from_folder`) or, for the embedded default, procedural in-air RGB-D
 scenes turned pseudo-underwater by the synthesis module (`procedural_upatches`). Building is seeded per
@@ -46,22 +53,40 @@ def sample_homography(
     scale_range: tuple[float, float] = (0.7, 1.0),
     perspective: float = 0.1,
     max_tries: int = 100,
+    fit_inside: bool = False,
+    zoom_range: tuple[float, float] = (0.8, 1.25),
+    max_shift: float = 0.1,
 ) -> tuple[np.ndarray, float]:
-    """A homography image 1 -> image 2 (both of size hw) whose view lies inside image 1, and its rotation (deg).
+    """A homography image 1 -> image 2 (both of size hw) and its in-plane rotation of the content (degrees).
 
-    Image 2 sees a quadrilateral of image 1: the frame rotated by -angle, shrunk to ``scale_range`` of the largest
-    size that fits at that angle, corners jittered by up to ``perspective`` x half the short side, then shifted
-    to a random place where it stays inside. The returned angle is the in-plane rotation of the content.
+    Image 2 sees a quadrilateral of image 1: the frame rotated by -angle and scaled, corners jittered by up to
+    ``perspective`` x half the short side (times the scale), then shifted.
+    ``fit_inside``: the scale is ``scale_range`` (uniform) of the largest that fits at that angle and the shift
+    keeps the quadrilateral inside image 1. Otherwise the content is zoomed by a factor drawn log-uniformly in
+    ``zoom_range`` and the quadrilateral's centre is shifted by up to ``max_shift`` of the image size per axis.
     """
     h, w = hw
     angle = float(rng.uniform(-max_rotation_deg, max_rotation_deg))
     theta = np.radians(-angle)
-    c, s = abs(np.cos(theta)), abs(np.sin(theta))
-    fit = min(w / (w * c + h * s), h / (w * s + h * c))  # largest scale of the rotated frame inside image 1
     rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
     frame = _frame_corners(hw)
     centre = np.array([(w - 1) / 2, (h - 1) / 2])
-    lo, hi = _frame_corners(hw).min(0), _frame_corners(hw).max(0)
+
+    def homography(quad: np.ndarray) -> np.ndarray:
+        H = cv2.getPerspectiveTransform(quad.astype(np.float32), frame.astype(np.float32)).astype(np.float64)
+        return H / H[2, 2]
+
+    if not fit_inside:
+        lo, hi = np.log(zoom_range[0]), np.log(zoom_range[1])
+        scale = 1.0 / np.exp(rng.uniform(lo, hi))  # size of the seen quadrilateral = 1 / zoom
+        quad = (frame - centre) * scale @ rot.T + centre
+        quad += rng.uniform(-1, 1, size=quad.shape) * perspective * scale * min(h, w) / 2
+        quad += rng.uniform(-1, 1, size=2) * max_shift * np.array([w, h])
+        return homography(quad), angle
+
+    c, s = abs(np.cos(theta)), abs(np.sin(theta))
+    fit = min(w / (w * c + h * s), h / (w * s + h * c))  # largest scale of the rotated frame inside image 1
+    lo, hi = frame.min(0), frame.max(0)
     for attempt in range(max_tries + 1):
         jitter = perspective if attempt < max_tries else 0.0  # last resort: pure similarity, always fits
         scale = fit * rng.uniform(*scale_range)
@@ -69,9 +94,7 @@ def sample_homography(
         quad += rng.uniform(-1, 1, size=quad.shape) * jitter * scale * min(h, w) / 2
         t_lo, t_hi = lo - quad.min(0), hi - quad.max(0)  # translations keeping quad inside image 1
         if np.all(t_lo <= t_hi):
-            quad += rng.uniform(t_lo, t_hi)
-            H = cv2.getPerspectiveTransform(quad.astype(np.float32), frame.astype(np.float32)).astype(np.float64)
-            return H / H[2, 2], angle
+            return homography(quad + rng.uniform(t_lo, t_hi)), angle
     raise AssertionError("unreachable: the jitter-free attempt always fits")
 
 
@@ -90,6 +113,9 @@ def build_upatches(
     scale_range: tuple[float, float] = (0.7, 1.0),
     perspective: float = 0.1,
     seed: int = 0,
+    fit_inside: bool = False,
+    zoom_range: tuple[float, float] = (0.8, 1.25),
+    max_shift: float = 0.1,
 ) -> Path:
     """Write one ``v_<id>`` sequence per (id, uint8 RGB image) into out_dir; reuse a finished identical build.
 
@@ -100,8 +126,16 @@ def build_upatches(
     size = (int(size[0]), int(size[1]))
     manifest = {
         **manifest, "num_warps": int(num_warps), "size": list(size), "max_rotation_deg": float(max_rotation_deg),
-        "scale_range": [float(v) for v in scale_range], "perspective": float(perspective), "seed": int(seed),
+        "perspective": float(perspective), "seed": int(seed), "fit_inside": bool(fit_inside),
     }
+    if fit_inside:
+        manifest["scale_range"] = [float(v) for v in scale_range]
+    else:
+        manifest.update(zoom_range=[float(v) for v in zoom_range], max_shift=float(max_shift))
+    if fit_inside and not 0 < scale_range[0] <= scale_range[1] <= 1:
+        raise ValueError(f"scale_range must satisfy 0 < low <= high <= 1 with fit_inside, got {list(scale_range)}.")
+    if not fit_inside and not 0 < zoom_range[0] <= zoom_range[1]:
+        raise ValueError(f"zoom_range must satisfy 0 < low <= high, got {list(zoom_range)}.")
     if out_dir.exists():
         if (out_dir / MANIFEST).is_file() and json.loads((out_dir / MANIFEST).read_text()) == manifest:
             return out_dir
@@ -121,7 +155,8 @@ def build_upatches(
             cv2.imwrite(str(folder / "1.ppm"), cv2.cvtColor(reference, cv2.COLOR_RGB2BGR))
             rotations = []
             for k in range(2, num_warps + 2):
-                H, angle = sample_homography(rng, size, max_rotation_deg, scale_range, perspective)
+                H, angle = sample_homography(rng, size, max_rotation_deg, scale_range, perspective,
+                                             fit_inside=fit_inside, zoom_range=zoom_range, max_shift=max_shift)
                 cv2.imwrite(str(folder / f"{k}.ppm"), cv2.cvtColor(warp_image(reference, H), cv2.COLOR_RGB2BGR))
                 np.savetxt(folder / f"H_1_{k}", H, fmt="%.17g")
                 rotations.append(angle)

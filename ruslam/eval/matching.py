@@ -103,10 +103,15 @@ def evaluate_pair(
     max_keypoints: int = 2000,
     eps: float = 3.0,
     thresholds: tuple = THRESHOLDS,
+    max_keypoints1: int | None = None,
 ) -> PairResult:
-    """Repeatability, matching score and MMA of one pair; H maps image-1 pixels to image-2 pixels."""
+    """Repeatability, matching score and MMA of one pair; H maps image-1 pixels to image-2 pixels.
+
+    ``max_keypoints1``: another cap for image 1 (0: none), e.g. a reference pooled over several rotations.
+    """
     H = np.asarray(H, dtype=np.float64)
-    f1, f2 = cap_keypoints(features1, max_keypoints), cap_keypoints(features2, max_keypoints)
+    cap1 = max_keypoints if max_keypoints1 is None else max_keypoints1
+    f1, f2 = cap_keypoints(features1, cap1), cap_keypoints(features2, max_keypoints)
     kp1 = np.asarray(f1["keypoints"], dtype=np.float64).reshape(-1, 2)
     kp2 = np.asarray(f2["keypoints"], dtype=np.float64).reshape(-1, 2)
     warped1 = warp_points(kp1, H)

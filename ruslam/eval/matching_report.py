@@ -26,8 +26,9 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
-from ruslam.eval.matching import PairResult, evaluate_pair, rotation_bin, summarize
+from ruslam.eval.matching import PairResult, cap_keypoints, evaluate_pair, rotation_bin, summarize
 from ruslam.models.registry import EXTRACTORS, load_extractor
+from ruslam.models.rotation_tta import ROTATIONS, extract_rotations, pool
 
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
 
@@ -61,68 +62,103 @@ def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
     return built, skipped
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def rotation_modes(task: DictConfig) -> list[str]:
+    """``task.rotation_tta``: none, c4, or a list of both (one table row per extractor and mode)."""
+    value = task.get("rotation_tta") or "none"
+    modes = [value] if isinstance(value, str) else list(value)
+    if not modes or any(m not in ("none", "c4") for m in modes) or len(set(modes)) != len(modes):
+        raise ValueError(f"task.rotation_tta must be none, c4 or a list of both, got {value!r}.")
+    return modes
+
+
+def mode_key(name: str, mode: str) -> str:
+    return name if mode == "none" else f"{name}+{mode}"
+
+
+def row_labels(task: DictConfig, names) -> dict:
+    """Table labels of every extractor and rotation mode (``task.labels``, '+ C4 TTA' for the augmented rows)."""
+    labels = dict(task.get("labels") or {})
+    labels.update({mode_key(n, m): f"{labels.get(n, n)} + C4 TTA" for n in names for m in rotation_modes(task)
+                   if m != "none"})
+    return labels
+
+
+def atomic_write(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
 
 
-def _bin_name(lo, hi) -> str:
+def bin_name(lo, hi) -> str:
     return f"{lo:g}-{hi:g}°"
 
 
 def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path, bins) -> tuple:
     """Run every extractor on every pair (one progress bar over pairs).
 
-    Returns ({name: [PairResult]}, [rotation of each pair], {name: [seconds per image]}, [picture paths]); the
-    first pair met in each rotation bin (at most ``task.num_pictures`` pairs) gets a match picture per extractor.
+    Returns ({key: [PairResult]}, [(rotation, zoom) of each pair], {key: [seconds per image 2]}, [pictures]),
+    one key per extractor and rotation mode (`mode_key`); the first pair met in each rotation bin (at most
+    ``task.num_pictures`` pairs) gets a match picture per key. With C4 test-time augmentation, image 1 (shared by
+    the pairs of a sequence) is also extracted at 90/180/270°, each rotation capped to ``task.max_keypoints``.
     """
-    thresholds = tuple(task.thresholds)
-    results = {name: [] for name in extractors}
-    rotations, timings = [], {name: [] for name in extractors}
+    modes = rotation_modes(task)
+    keys = [(name, mode, mode_key(name, mode)) for name in extractors for mode in modes]
+    results = {key: [] for _, _, key in keys}
+    rotations, timings = [], {key: [] for _, _, key in keys}
     reference = {}  # name -> (sequence, features of image 1): image 1 is shared by the pairs of a sequence
     pictured_bins, pictures = set(), []
     (out_dir / "matches").mkdir(parents=True, exist_ok=True)
     for i in tqdm(range(len(dataset)), desc="matching pairs", unit="pair"):
         pair = dataset[i]
-        rotations.append(pair["rotation_deg"])
+        rotations.append((pair["rotation_deg"], pair.get("zoom", float("nan"))))
         b = rotation_bin(pair["rotation_deg"], bins)
         picture = len(pictured_bins) < task.num_pictures and b not in pictured_bins
         for name, extractor in extractors.items():
             if reference.get(name, (None,))[0] != pair["sequence"]:
-                reference[name] = (pair["sequence"], extractor.extract(pair["image1"]))
+                parts = extract_rotations(extractor, pair["image1"], ROTATIONS if "c4" in modes else (0,))
+                parts = [cap_keypoints(p, task.max_keypoints) for p in parts]
+                reference[name] = (pair["sequence"], {"none": parts[0], "c4": pool(parts)})
             start = time.perf_counter()
             features2 = extractor.extract(pair["image2"])
-            timings[name].append(time.perf_counter() - start)
-            res = evaluate_pair(
-                reference[name][1], features2, pair["H"], pair["image1"].shape[:2], pair["image2"].shape[:2],
-                binary=getattr(extractor, "binary", False), max_keypoints=task.max_keypoints, eps=task.eps,
-                thresholds=thresholds,
-            )
-            if picture:
-                canvas = draw_matches(pair["image1"], pair["image2"], res.keypoints1, res.keypoints2, res.matches,
-                                      res.match_errors <= task.eps)
-                stem = Path(str(name)).name  # an extractor given as a weights path: named after the file
-                path = out_dir / "matches" / f"{stem}_{pair['name'].replace('/', '_')}.png"
-                write_png(path, canvas)
-                pictures.append(str(path.relative_to(out_dir)))
-            empty = np.zeros((0, 2))
-            results[name].append(replace(res, keypoints1=empty, keypoints2=empty, matches=empty, match_errors=empty))
+            seconds = time.perf_counter() - start
+            for mode in modes:
+                key = mode_key(name, mode)
+                timings[key].append(seconds)
+                results[key].append(_evaluate(reference[name][1][mode], features2, pair, extractor, task, key,
+                                              out_dir, picture, pictures))
         if picture:
             pictured_bins.add(b)
     return results, rotations, timings, pictures
+
+
+def _evaluate(features1, features2, pair, extractor, task, key, out_dir, picture, pictures) -> PairResult:
+    """One pair's metrics (image 1 already capped), its match picture when asked, arrays dropped from the result."""
+    res = evaluate_pair(
+        features1, features2, pair["H"], pair["image1"].shape[:2], pair["image2"].shape[:2],
+        binary=getattr(extractor, "binary", False), max_keypoints=task.max_keypoints, eps=task.eps,
+        thresholds=tuple(task.thresholds), max_keypoints1=0,
+    )
+    if picture:
+        canvas = draw_matches(pair["image1"], pair["image2"], res.keypoints1, res.keypoints2, res.matches,
+                              res.match_errors <= task.eps)
+        stem = Path(str(key)).name  # an extractor given as a weights path: named after the file
+        path = out_dir / "matches" / f"{stem}_{pair['name'].replace('/', '_')}.png"
+        write_png(path, canvas)
+        pictures.append(str(path.relative_to(out_dir)))
+    empty = np.zeros((0, 2))
+    return replace(res, keypoints1=empty, keypoints2=empty, matches=empty, match_errors=empty)
 
 
 def summarize_by_bin(results: list[PairResult], rotations: list[float], bins, thresholds, headline) -> dict:
     out = {"overall": summarize(results, thresholds, headline)}
     for k, (lo, hi) in enumerate(bins):
         subset = [r for r, a in zip(results, rotations, strict=True) if rotation_bin(a, bins) == k]
-        out[_bin_name(lo, hi)] = summarize(subset, thresholds, headline)
+        out[bin_name(lo, hi)] = summarize(subset, thresholds, headline)
     return out
 
 
 def markdown_table(title: str, summary: dict, labels: dict, skipped: dict, bins, headline) -> str:
-    bin_names = [_bin_name(lo, hi) for lo, hi in bins]
+    bin_names = [bin_name(lo, hi) for lo, hi in bins]
     first = next(iter(summary.values()), None)
     counts = [first[b]["pairs"] if first else 0 for b in bin_names]
     head = ["Method", "%Rep.", "%M.S.", f"%MMA@{headline:g}px"]
@@ -140,7 +176,7 @@ def markdown_table(title: str, summary: dict, labels: dict, skipped: dict, bins,
 
 
 def csv_table(summary: dict, labels: dict, skipped: dict, bins, thresholds) -> str:
-    parts = ["overall"] + [_bin_name(lo, hi) for lo, hi in bins]
+    parts = ["overall"] + [bin_name(lo, hi) for lo, hi in bins]
     header = ["method", "name", "part", "pairs", "rep", "ms", "mma", "keypoints", "matches"]
     header += [f"mma@{t:g}" for t in thresholds] + ["note"]
     buf = io.StringIO()
@@ -181,7 +217,7 @@ def _run(cfg: DictConfig) -> dict:
     if headline not in thresholds:
         raise ValueError(f"task.headline_threshold={headline:g} must be one of task.thresholds {list(thresholds)}.")
     bins = [tuple(b) for b in task.rotation_bins]
-    labels = dict(task.get("labels") or {})
+    labels = row_labels(task, names)
     extractors, skipped = resolve_extractors(names, task)
 
     dataset_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
@@ -192,22 +228,24 @@ def _run(cfg: DictConfig) -> dict:
     if len(dataset) == 0:
         raise ValueError(f"Dataset {title} holds no image pair.")
     if extractors:
-        results, rotations, timings, pictures = evaluate_dataset(dataset, extractors, task, out_dir, bins)
+        results, geometry, timings, pictures = evaluate_dataset(dataset, extractors, task, out_dir, bins)
     else:  # every extractor was skipped: still write the table with the notes
-        results, rotations, timings, pictures = {}, [], {}, []
+        results, geometry, timings, pictures = {}, [], {}, []
+    rotations, zooms = [g[0] for g in geometry], [g[1] for g in geometry]
 
     summary = {n: summarize_by_bin(r, rotations, bins, thresholds, headline) for n, r in results.items()}
     for name in summary:
         summary[name]["seconds_per_image"] = float(np.mean(timings[name]))
-    title = (f"{title}: {len(dataset)} pairs, {task.max_keypoints} keypoints max, Rep./M.S. at "
+    zoom = f", median zoom {np.nanmedian(zooms):.2f}x" if np.isfinite(zooms).any() else ""
+    title = (f"{title}: {len(dataset)} pairs{zoom}, {task.max_keypoints} keypoints max, Rep./M.S. at "
              f"{task.eps:g} px, MMA at {headline:g} px")
-    _atomic_write(out_dir / "table.md", markdown_table(title, summary, labels, skipped, bins, headline))
-    _atomic_write(out_dir / "table.csv", csv_table(summary, labels, skipped, bins, thresholds))
+    atomic_write(out_dir / "table.md", markdown_table(title, summary, labels, skipped, bins, headline))
+    atomic_write(out_dir / "table.csv", csv_table(summary, labels, skipped, bins, thresholds))
     curves = {labels.get(n, n): s["overall"]["mma_curve"] for n, s in summary.items() if s["overall"].get("pairs")}
     plot_mma(curves, thresholds, out_dir / "mma_vs_threshold.png", title.split(":")[0])
-    report = {"dataset": title, "pairs": len(dataset), "rotations_deg": rotations, "results": summary,
+    report = {"dataset": title, "pairs": len(dataset), "rotations_deg": rotations, "zooms": zooms, "results": summary,
               "skipped": skipped, "pictures": pictures,
               "files": ["table.md", "table.csv", "mma_vs_threshold.png", "results.json"]}
-    _atomic_write(out_dir / "results.json", json.dumps(report, indent=1))
+    atomic_write(out_dir / "results.json", json.dumps(report, indent=1))
     print((out_dir / "table.md").read_text())
     return report

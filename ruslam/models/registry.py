@@ -14,6 +14,11 @@ EXTRACTORS = {
     "uwnet_xfeat": "ruslam.models.uwnet_extractor:UWNetExtractor",
     "xfeat": "ruslam.models.teachers.xfeat:XFeat",
     "superpoint": "ruslam.models.teachers.superpoint:SuperPoint",
+    "aliked": "ruslam.models.peers:ALIKED",  # ALIKED-n16rot
+    "aliked-n16": "ruslam.models.peers:ALIKEDN16",
+    "aliked-t16": "ruslam.models.peers:ALIKEDT16",
+    "aliked-n32": "ruslam.models.peers:ALIKEDN32",
+    "disk": "ruslam.models.peers:DISK",
 }
 
 

