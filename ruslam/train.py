@@ -16,17 +16,17 @@ from omegaconf import DictConfig
 from ruslam.config_checks import check_train
 from ruslam.errors import InputError
 from ruslam.models.export import export_weights, load_uwnet
-from ruslam.models.uwnet import UWNet
 
 REPORTED = (("val/detector", "detector (L3, soft CE)"), ("val/local", "local descriptors (L2)"),
-            ("val/global", "global descriptor (L1)"), ("val/loss", "total eq. 8"))
+            ("val/global", "global descriptor (L1)"), ("val/correspondence", "correspondence (InfoNCE)"),
+            ("val/loss", "total"))
 
 
 def _instantiate_all(group: DictConfig | None) -> list:
     return [instantiate(conf) for conf in (group or {}).values() if conf is not None and "_target_" in conf]
 
 
-def load_initial_weights(net: UWNet, path: str | Path) -> None:
+def load_initial_weights(net: torch.nn.Module, path: str | Path) -> None:
     """Fine-tuning: start from trained weights (exported .pt or Lightning .ckpt); unlike ckpt_path, the optimizer,
     learning rate and epoch count start afresh from the config."""
     source = load_uwnet(path)

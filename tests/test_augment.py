@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -84,3 +85,40 @@ def test_photometric_is_seeded_and_stays_in_range():
     torch.testing.assert_close(a, b)
     assert not torch.equal(a, aug(img, seeded_generator(6)))
     assert a.min() >= 0 and a.max() <= 1
+
+
+class _Cache:
+    def __init__(self, h, w):
+        g = torch.Generator().manual_seed(0)
+        self.targets = {"keypoint_logits": torch.randn(65, h // 8, w // 8, generator=g).numpy(),
+                        "dense_descriptors": torch.randn(64, h // 8, w // 8, generator=g).numpy(),
+                        "global_descriptor": torch.randn(4096, generator=g).numpy()}
+
+    def read(self, key):
+        return dict(self.targets)
+
+
+def test_pair_views_carry_the_homography_between_them():
+    """Pixel p of view A shows the same image point as pixel H_ab p of view B."""
+    from ruslam.training.datamodule import DistillationDataset  # noqa: PLC0415
+
+    h, w = 96, 128
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    image = np.stack([np.sin(xx / 7) * 0.5 + 0.5, np.cos(yy / 9) * 0.5 + 0.5, (xx + yy) / (h + w)], -1)
+    source = [{"id": 0, "image": image, "depth": np.ones((h, w), np.float32)}]
+    data = DistillationDataset(source, [0], _Cache(h, w), geometric=GeometricAugment(), pair_views=True)
+    sample = data[0]
+    a, b, hom = sample["image"], sample["pair"]["image"], sample["homography_ab"].double()
+    assert not torch.equal(a, b) and sample["pair"]["mask"].shape == sample["mask"].shape
+    pts = torch.stack(torch.meshgrid(torch.arange(20, h - 20, 6), torch.arange(20, w - 20, 6), indexing="xy"),
+                      -1).reshape(-1, 2).double()
+    q = torch.cat([pts, torch.ones(len(pts), 1, dtype=torch.float64)], 1) @ hom.T
+    q = q[:, :2] / q[:, 2:]
+    inside = (q[:, 0] > 2) & (q[:, 0] < w - 3) & (q[:, 1] > 2) & (q[:, 1] < h - 3)
+    va = a[:, pts[inside, 1].long(), pts[inside, 0].long()]
+    qi = q[inside].round().long()
+    vb = b[:, qi[:, 1], qi[:, 0]]
+    assert inside.sum() > 20
+    assert (va - vb).abs().mean() < 0.05  # rounding to the nearest pixel leaves a small error
+    wrong = b[:, pts[inside, 1].long(), pts[inside, 0].long()]  # ignoring the homography
+    assert (va - wrong).abs().mean() > 2 * (va - vb).abs().mean()

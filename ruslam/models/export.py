@@ -54,9 +54,23 @@ def _payload(config: dict, state: dict) -> dict:
     return {"format": FORMAT, "version": VERSION, "config": config, "state_dict": half}
 
 
-def export_weights(source: UWNet | str | Path, out_path: str | Path) -> Path:
-    """Write an fp16 weights file from a UWNet or a Lightning checkpoint path (temp file + rename)."""
-    if isinstance(source, UWNet):
+def build_network(config: dict) -> torch.nn.Module:
+    """The student network a weights file's config describes: ``architecture`` "xfeat_student" is variant (b)
+    (`XFeatStudent`), absent is the paper's MobileNetV2 UWNet (variant a)."""
+    config = dict(config)
+    arch = config.pop("architecture", "uwnet")
+    if arch == "xfeat_student":
+        from ruslam.models.uwnet_xfeat_student import XFeatStudent  # noqa: PLC0415
+
+        return XFeatStudent(**config, teacher_weights="none")
+    if arch != "uwnet":
+        raise TypeError(f"unknown architecture {arch!r}")
+    return UWNet(**config)
+
+
+def export_weights(source: torch.nn.Module | str | Path, out_path: str | Path) -> Path:
+    """Write an fp16 weights file from a student network or a Lightning checkpoint path (temp file + rename)."""
+    if isinstance(source, torch.nn.Module):
         payload = _payload(dict(source.config), source.state_dict())
     else:
         payload = lightning_to_payload(source)
@@ -65,7 +79,7 @@ def export_weights(source: UWNet | str | Path, out_path: str | Path) -> Path:
     return out
 
 
-def load_uwnet(path: str | Path, descriptor_dim: int | None = None) -> UWNet:
+def load_uwnet(path: str | Path, descriptor_dim: int | None = None) -> torch.nn.Module:
     """Rebuild a UWNet (float32, eval mode) from an exported weights file or a DistillationModule checkpoint."""
     path = Path(path)
     obj = _load(path)
@@ -79,7 +93,7 @@ def load_uwnet(path: str | Path, descriptor_dim: int | None = None) -> UWNet:
         raise InputError(f"{path} has {config.get('descriptor_dim')}-d descriptors, but {descriptor_dim}-d were "
                          f"requested.")
     try:
-        net = UWNet(**config)
+        net = build_network(config)
     except TypeError as err:
         raise InputError(f"{path} holds an unknown UWNet configuration ({err}).") from None
     own = net.state_dict()

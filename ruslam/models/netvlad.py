@@ -19,8 +19,12 @@ class NetVLAD(nn.Module):
     paper's implementation.
     """
 
-    def __init__(self, num_clusters: int = 64, dim: int = 128, normalize_input: bool = True, bias: bool = True):
+    def __init__(self, num_clusters: int = 64, dim: int = 128, normalize_input: bool = True, bias: bool = True,
+                 intra_eps: float = 1e-12):
         super().__init__()
+        # intra_eps > 0 keeps clusters that received (almost) no mass near zero, as in hard VLAD, instead of
+        # blowing their residual up to unit length.
+        self.intra_eps = intra_eps
         if num_clusters < 1 or dim < 1:
             raise ValueError(f"NetVLAD needs num_clusters >= 1 and dim >= 1, got {num_clusters} and {dim}.")
         self.num_clusters, self.dim, self.normalize_input = num_clusters, dim, normalize_input
@@ -48,5 +52,5 @@ class NetVLAD(nn.Module):
         assign = self.conv(x).flatten(2).softmax(dim=1)  # [B, K, N]
         flat = x.flatten(2)  # [B, C, N]
         vlad = torch.einsum("bkn,bcn->bkc", assign, flat) - assign.sum(-1, keepdim=True) * self.centroids
-        vlad = F.normalize(vlad, dim=2)  # intra-normalization
+        vlad = F.normalize(vlad, dim=2, eps=self.intra_eps)  # intra-normalization
         return F.normalize(vlad.flatten(1), dim=1)

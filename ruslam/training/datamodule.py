@@ -36,8 +36,11 @@ def _build(conf):
 
 class DistillationDataset(Dataset):
     def __init__(self, source, indices, cache, synthesis=None, photometric=None, geometric=None, seed=0,
-                 vary_per_epoch=True):
+                 vary_per_epoch=True, pair_views=False):
         self.source, self.indices, self.cache = source, list(indices), cache
+        # Two independently degraded and warped views per image (``pair`` + ``homography_ab``) for the
+        # correspondence loss.
+        self.pair_views = pair_views
         self.synthesis, self.photometric, self.geometric = synthesis, photometric, geometric
         self.seed, self.vary_per_epoch, self.epoch = seed, vary_per_epoch, 0
 
@@ -48,21 +51,34 @@ class DistillationDataset(Dataset):
         index = self.indices[i]
         item = self.source[index]
         targets = {k: torch.from_numpy(v) for k, v in self.cache.read(str(item["id"])).items()}
+        sample, hom_a = self._view(item, targets, index, 0)
+        if not self.pair_views:
+            return sample
+        second, hom_b = self._view(item, targets, index, 1)
+        sample["pair"] = second
+        sample["homography_ab"] = (hom_b @ torch.linalg.inv(hom_a)).float()  # view-A pixels -> view-B pixels
+        return sample
+
+    def _view(self, item: dict, targets: dict, index: int, view: int) -> tuple[dict, torch.Tensor]:
+        """One degraded, warped student input with its warped targets, and the pixel homography used (float64).
+        View 0 keeps the seeds of the single-view pipeline; view 1 draws independent water, jitter and warp."""
         rgb = torch.from_numpy(np.ascontiguousarray(item["image"], np.float32)).permute(2, 0, 1)
         epoch = self.epoch if self.vary_per_epoch else 0
         if self.synthesis is not None:  # invalid depth (NaN) stays invalid: eq. 4 shows it as infinitely far
             depth = torch.from_numpy(np.ascontiguousarray(item["depth"], np.float32))
-            rgb = self.synthesis(rgb[None], depth[None], [index + epoch * len(self.source)])[0].float()
-        gen = seeded_generator(self.seed, epoch, index)
+            key = index + epoch * len(self.source) + view * 1_000_003
+            rgb = self.synthesis(rgb[None], depth[None], [key])[0].float()
+        gen = seeded_generator(self.seed, epoch, index) if view == 0 else seeded_generator(self.seed, epoch, index, view)
         if self.photometric is not None:
             rgb = self.photometric(rgb, gen)
+        hom = torch.eye(3, dtype=torch.float64)
         if self.geometric is not None:
             hom = self.geometric.sample(rgb.shape[1], rgb.shape[2], gen)
             rgb = warp_image(rgb, hom)
-            targets = warp_targets(targets, hom)
+            out = warp_targets(targets, hom)
         else:
-            targets["mask"] = torch.ones(targets["keypoint_logits"].shape[1:])
-        return {"image": rgb, **targets}
+            out = {**targets, "mask": torch.ones(targets["keypoint_logits"].shape[1:])}
+        return {"image": rgb, **out}, hom
 
 
 class PreparedSource:
@@ -101,7 +117,7 @@ class DistillationDataModule(pl.LightningDataModule):
                  split_seed: int = 0, batch_size: int = 16, num_workers: int = 0, seed: int = 0, preload: bool = True,
                  limit_images: int | None = None, image_size: tuple[int, int] | None = None,
                  synthesis: dict | None = None, photometric: dict | None = None, geometric: dict | None = None,
-                 teacher_batch_size: int = 8, val_overrides: dict | None = None):
+                 teacher_batch_size: int = 8, val_overrides: dict | None = None, pair_views: bool = False):
         super().__init__()
         self.source_conf, self.teacher_conf = _plain(source), _plain(teacher)
         self.synthesis_conf, self.photometric_conf = _plain(synthesis), _plain(photometric)
@@ -109,6 +125,7 @@ class DistillationDataModule(pl.LightningDataModule):
         self.val_size, self.split_seed, self.batch_size = val_size, split_seed, batch_size
         self.num_workers, self.seed, self.preload = num_workers, seed, preload
         self.teacher_batch_size = teacher_batch_size
+        self.pair_views = pair_views
         # e.g. {split: test}: the held-out set is the source built with these options (NYU's 200 test images)
         # instead of val_size images carved out of the training source.
         self.val_overrides = _plain(val_overrides)
@@ -181,10 +198,11 @@ class DistillationDataModule(pl.LightningDataModule):
             val_idx, train_idx = list(range(len(val_source))), list(range(len(source)))
         synthesis, photometric = _build(self.synthesis_conf), _build(self.photometric_conf)
         geometric = _build(self.geometric_conf)
-        self.train_set = DistillationDataset(source, train_idx, cache, synthesis, photometric, geometric, self.seed)
+        self.train_set = DistillationDataset(source, train_idx, cache, synthesis, photometric, geometric, self.seed,
+                                             pair_views=self.pair_views)
         # Held-out set: same degradations and warps, but fixed per image so epochs compare like with like.
         self.val_set = DistillationDataset(val_source, val_idx, cache, synthesis, None, geometric, self.seed + 1,
-                                           vary_per_epoch=False)
+                                           vary_per_epoch=False, pair_views=self.pair_views)
 
     def set_epoch(self, epoch: int) -> None:
         if self.train_set is not None:

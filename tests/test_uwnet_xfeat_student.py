@@ -1,0 +1,75 @@
+"""UWNet variant (b): step 0 reproduces the XFeat teacher; export/load by architecture; trains through configs."""
+
+import numpy as np
+import pytest
+import torch
+from conftest import compose
+
+from ruslam import load_extractor
+from ruslam.models.export import export_weights, load_uwnet
+from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
+from ruslam.models.teachers.xfeat import XFeatTeacher
+from ruslam.models.uwnet_xfeat_student import XFeatStudent
+from ruslam.train import train
+
+
+def _images(h=72, w=104, n=2):  # not multiples of 32: the student must pad exactly as the teacher does
+    g = torch.Generator().manual_seed(0)
+    base = torch.rand(n, 3, h // 8, w // 8, generator=g)
+    return (torch.nn.functional.interpolate(base, size=(h, w), mode="bilinear") + 0.1 * torch.rand(n, 3, h, w,
+                                                                                                     generator=g)) / 1.1
+
+
+@pytest.mark.parametrize("mode", ["eval", "train"])
+def test_step_zero_outputs_equal_the_xfeat_teacher(mode):
+    student, teacher = XFeatStudent(), XFeatTeacher()
+    student.train(mode == "train")
+    x = _images()
+    with torch.no_grad():
+        got, want = student(x), teacher(x)
+        vlad = VLAD(64, 64, codebook=str(PACKAGED_XFEAT_CODEBOOK))(x, want)
+    assert got["keypoint_logits"].shape == want["keypoint_logits"].shape == (2, 65, 9, 13)
+    assert (got["keypoint_logits"] - want["keypoint_logits"]).abs().max() < 1e-4
+    assert (got["dense_descriptors"] - want["dense_descriptors"]).abs().max() < 1e-4
+    # The NetVLAD head starts near the teacher's hard VLAD (same codebook, sharp soft assignment).
+    assert (got["global_descriptor"] * vlad).sum(-1).min() > 0.9
+
+
+def test_added_blocks_are_trainable_and_move_the_outputs():
+    student = XFeatStudent()
+    x = _images(n=1)
+    out = student(x)
+    (out["keypoint_logits"].pow(2).mean() + out["dense_descriptors"].sum()).backward()
+    for name in ("kp_context.weight", "deform.3.conv.weight", "attention.position.gamma"):
+        grad = dict(student.named_parameters())[name].grad
+        assert grad is not None and grad.abs().sum() > 0, name
+
+
+def test_export_and_load_extractor_round_trip(tmp_path):
+    student = XFeatStudent()
+    with torch.no_grad():
+        student.kp_context.weight.normal_(0, 0.01)  # not the teacher any more: loading must keep this
+    path = export_weights(student, tmp_path / "student.pt")
+    loaded = load_uwnet(path)
+    assert isinstance(loaded, XFeatStudent)
+    assert torch.allclose(loaded.kp_context.weight, student.kp_context.weight.half().float())
+    image = (np.random.default_rng(0).random((96, 128, 3)) * 255).astype(np.uint8)
+    out = load_extractor(path).extract(image)
+    assert out["descriptors"].shape[1] == 64 and out["global_descriptor"].shape == (4096,)
+    assert len(out["keypoints"]) > 0
+
+
+def test_student_rejects_other_widths():
+    with pytest.raises(ValueError, match="64-d descriptors"):
+        XFeatStudent(descriptor_dim=128)
+
+
+def test_student_trains_through_the_composed_config(tmp_path):
+    cfg = compose("train", [f"out_dir={tmp_path}", f"datamodule.cache_root={tmp_path / 'cache'}",
+                            "model=uwnet_xfeat_student", "data.num_images=6", "data.height=64", "data.width=96",
+                            "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
+                            "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
+                            "trainer.enable_progress_bar=false", "~callbacks.progress_bar",
+                            "+trainer.fast_dev_run=true"])
+    assert train(cfg) is not None
+    assert isinstance(load_uwnet(tmp_path / "uwnet.pt"), XFeatStudent)
