@@ -111,3 +111,20 @@ def test_command_row_through_the_entry_point(number, command, message, scratch):
     assert matches(message, lines[0][len("error: "):], scratch), lines[0]
     # Hydra's own record of the run (.hydra/ and the job log) is all that may exist
     assert [p for p in _written(run_dir) if not (p.startswith(".hydra") or p.endswith(".log"))] == []
+
+
+def test_config_checks_run_before_torch_is_imported(tmp_path):
+    """Why a bad input is reported in seconds: the checks of every default config import no heavy library."""
+    code = f"""
+import sys
+sys.path.insert(0, {str(ROOT / "tests")!r})
+from conftest import compose
+from ruslam.config_checks import check_evaluate, check_train
+check_train(compose("train", ["out_dir={tmp_path}"]))
+for task in ("synthesis", "matching", "slam"):
+    check_evaluate(compose("evaluate", [f"task={{task}}", "out_dir={tmp_path}"]))
+print(sorted(m for m in ("torch", "torchvision", "pytorch_lightning", "gtsam", "evo", "kornia") if m in sys.modules))
+"""
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[]", done.stdout

@@ -2,6 +2,7 @@
 
 Nothing here downloads unless given a URL, and an offline machine gets one sentence saying where to put the file.
 Checkpoints are always read with ``torch.load(..., weights_only=True)``: no code from a weights file is executed.
+torch is imported only by the loaders, so a config check can resolve and hash a weights file before torch loads.
 """
 
 from __future__ import annotations
@@ -11,13 +12,15 @@ import os
 import shutil
 import urllib.request
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlparse
-
-import torch
-import torch.nn as nn
 
 from ruslam.atomic_files import atomic_path
 from ruslam.errors import InputError, MissingWeights
+
+if TYPE_CHECKING:
+    import torch
+    import torch.nn as nn
 
 CACHE_ENV = "RUSLAM_CACHE"
 
@@ -80,6 +83,8 @@ def _check_hash(path: Path, sha256: str | None, shown_as: str | None = None) -> 
 
 def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """Read a state dict (plain, or wrapped as ``{"state_dict": ...}``) with ``weights_only=True``."""
+    import torch  # noqa: PLC0415 (see the module docstring)
+
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 (any unpickling failure is reported the same way)
