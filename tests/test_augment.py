@@ -110,7 +110,7 @@ def test_pair_views_carry_the_homography_between_them():
     sample = data[0]
     a, b, hom = sample["image"], sample["pair"]["image"], sample["homography_ab"].double()
     assert not torch.equal(a, b) and sample["pair"]["mask"].shape == sample["mask"].shape
-    pts = torch.stack(torch.meshgrid(torch.arange(20, h - 20, 6), torch.arange(20, w - 20, 6), indexing="xy"),
+    pts = torch.stack(torch.meshgrid(torch.arange(20, w - 20, 6), torch.arange(20, h - 20, 6), indexing="xy"),
                       -1).reshape(-1, 2).double()
     q = torch.cat([pts, torch.ones(len(pts), 1, dtype=torch.float64)], 1) @ hom.T
     q = q[:, :2] / q[:, 2:]

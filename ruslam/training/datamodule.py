@@ -68,8 +68,7 @@ class DistillationDataset(Dataset):
             depth = torch.from_numpy(np.ascontiguousarray(item["depth"], np.float32))
             key = index + epoch * len(self.source) + view * 1_000_003
             rgb = self.synthesis(rgb[None], depth[None], [key])[0].float()
-        extra = () if view == 0 else (view,)
-        gen = seeded_generator(self.seed, epoch, index, *extra)
+        gen = seeded_generator(self.seed, epoch, index, *([view] if view else []))
         if self.photometric is not None:
             rgb = self.photometric(rgb, gen)
         hom = torch.eye(3, dtype=torch.float64)
