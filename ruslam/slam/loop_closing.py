@@ -201,6 +201,7 @@ class LoopCloser:
             return None
         a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
         if len(a) < c.min_matches:
+            log.debug("Candidate %s for %s rejected: %d descriptor matches.", cand, kf, len(a))
             return None
         a, b = ia[a], ib[b]
         P1 = transform(kf.T_cw, np.stack([kf.points[i].position for i in a]))
@@ -208,6 +209,7 @@ class LoopCloser:
         out = sim3_ransac(P1, P2, kf.keypoints[a], cand.keypoints[b], kf.K, cand.K, with_scale=not self.stereo,
                           seed=self.seed + kf.id, min_inliers=c.min_inliers)
         if out is None:
+            log.debug("Candidate %s for %s rejected: no Sim3 with %d inliers.", cand, kf, c.min_inliers)
             return None
         S12, _ = out
         loop_kfs = [cand, *_map_of(cand).neighbours(cand, 10)]

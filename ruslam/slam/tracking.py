@@ -48,6 +48,7 @@ class TrackingConfig:
     kf_max_frames: int = 10  # a keyframe is due after this many frames (if tracking has weakened at all) ...
     kf_min_frames: int = 3  # ... and allowed after this many, like ORB-SLAM's "mapping is idle" (see _need_keyframe)
     kf_urgent_ratio: float = 0.5  # below this share of the reference's points a keyframe is inserted at once
+    kf_min_tracked: int = 150  # ... and below this many tracked points (fast motion: new points before the map ends)
     kf_ratio_mono: float = 0.9  # tracked points / reference keyframe points below which a keyframe is needed
     kf_ratio_stereo: float = 0.75
     stereo_close_baselines: float = 40.0  # stereo points closer than this many baselines count as "close"
@@ -402,7 +403,7 @@ class Tracker:
         # ORB-SLAM inserts when local mapping is idle; run inline, mapping is always idle and every frame would
         # become a keyframe, so "idle" also needs kf_min_frames since the last one (or very weak tracking)
         allowed = since >= c.kf_max_frames or (self.mapper.idle() and since >= c.kf_min_frames)
-        urgent = tracked < c.kf_urgent_ratio * ref_points
+        urgent = tracked < c.kf_urgent_ratio * ref_points or tracked < c.kf_min_tracked
         return bool((allowed and weak or urgent) and tracked > 15)
 
     def _insert_keyframe(self, frame: Frame) -> None:
