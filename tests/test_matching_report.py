@@ -31,7 +31,7 @@ def check_outputs(out, report, names):
     assert png is not None and png.shape[0] > 100
     assert report["pictures"] and all((out / p).is_file() for p in report["pictures"])
     assert json.loads((out / "results.json").read_text())["pairs"] == report["pairs"]
-    assert not list(out.rglob("*.tmp"))
+    assert not list(out.rglob("*.tmp*"))
 
 
 def test_folder_run_writes_table_plot_pictures_and_skip_notes(tmp_path):
