@@ -20,7 +20,8 @@ from ruslam.models.extractor import (
 )
 
 STRIDE = 8
-SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "uwnet_xfeat.pt"
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
+SHIPPED_WEIGHTS = WEIGHTS_DIR / "uwnet_xfeat.pt"  # the better of the two trained variants (README)
 
 
 class UWNetExtractor(Extractor):
@@ -35,10 +36,11 @@ class UWNetExtractor(Extractor):
         "device": "cpu",
     }
     uses_device = True
+    default_weights = SHIPPED_WEIGHTS
 
     def __init__(self, **conf):
         super().__init__(**conf)
-        weights = self.conf["weights"] or SHIPPED_WEIGHTS
+        weights = self.conf["weights"] or self.default_weights
         self.device = torch.device(self.conf["device"])
         self.net = load_uwnet(weights, descriptor_dim=self.conf["descriptor_dim"]).to(self.device)
         self.descriptor_dim = self.net.config["descriptor_dim"]
@@ -72,3 +74,10 @@ class UWNetExtractor(Extractor):
             "descriptors": desc.cpu().numpy().astype(np.float32),
             "global_descriptor": out["global_descriptor"][0].cpu().numpy().astype(np.float32),
         }
+
+
+class UWNetMobileNetExtractor(UWNetExtractor):
+    """The other trained variant, (a): the paper's MobileNetV2 UWNet from ImageNet weights
+    (`load_extractor("uwnet_mobilenet")`)."""
+
+    default_weights = WEIGHTS_DIR / "uwnet_mobilenet.pt"

@@ -90,7 +90,8 @@ class XFeatStudent(nn.Module):
         """Soft assignment exp(-alpha |x - c|^2) around the teacher's raw (not renormalised) k-means centres."""
         from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, load_codebook  # noqa: PLC0415
 
-        c = torch.from_numpy(load_codebook(codebook_path or PACKAGED_XFEAT_CODEBOOK, 64, 64))
+        path = PACKAGED_XFEAT_CODEBOOK if codebook_path in (None, "packaged") else codebook_path
+        c = torch.from_numpy(load_codebook(path, 64, 64))
         self.netvlad.centroids.copy_(c)
         self.netvlad.conv.weight.copy_((2.0 * alpha * c)[:, :, None, None])
         self.netvlad.conv.bias.copy_(-alpha * c.pow(2).sum(1))

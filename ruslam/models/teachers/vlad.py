@@ -75,7 +75,8 @@ def vlad_aggregate(dense: torch.Tensor, codebook: torch.Tensor, power: float = 0
 class VLAD(nn.Module):
     """Global head of the offline teacher: `forward(image, local_outputs)` -> [B, K*D] from the dense descriptors.
 
-    `codebook`: a .npy path, or None to fit one on the training images when the cache is built (`prepare`).
+    `codebook`: a .npy path, "packaged" (the shipped XFeat codebook, `PACKAGED_XFEAT_CODEBOOK`, 64 x 64), or None
+    to fit one on the training images when the cache is built (`prepare`).
     """
 
     def __init__(
@@ -92,6 +93,8 @@ class VLAD(nn.Module):
         self.num_clusters, self.dim, self.power, self.seed = num_clusters, dim, power, seed
         self.fit_images, self.fit_descriptors_per_image = fit_images, fit_descriptors_per_image
         self.register_buffer("codebook", torch.zeros(num_clusters, dim))
+        if codebook == "packaged":
+            codebook = PACKAGED_XFEAT_CODEBOOK
         if codebook is not None:
             self.set_codebook(load_codebook(codebook, num_clusters, dim))
 
