@@ -90,7 +90,8 @@ def check_train(cfg: DictConfig) -> None:
         require_path(cfg, "model.net.pretrained_path", "file", MissingWeights)
     for key in ("teacher.local.weights", "teacher.global_head.weights"):
         require_path(cfg, key, "file", MissingWeights)
-    require_path(cfg, "teacher.global_head.codebook", "file")
+    if str(OmegaConf.select(cfg, "teacher.global_head.codebook", default=None)) != "packaged":  # shipped file
+        require_path(cfg, "teacher.global_head.codebook", "file")
     dm = cfg.datamodule
     size = dm.get("image_size")
     if size is not None and (len(size) != 2 or any(int(v) % 8 or int(v) <= 0 for v in size)):
