@@ -123,7 +123,7 @@ def main() -> None:
     for m in uwnet_ref.net.modules():
         if hasattr(m, "fast"):
             m.fast = False
-    net = uwnet.net
+    net = uwnet.net if isinstance(uwnet.net, UWNet) else UWNet().eval()  # the MobileNetV2 reference backbone
     x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
     superpoint = SuperPoint(net=SuperPointNet())  # the architecture with random weights: same cost
     xfeat, orb = load_extractor("xfeat"), load_extractor("orb")

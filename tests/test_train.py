@@ -15,7 +15,7 @@ from ruslam.models.export import export_weights, load_uwnet
 from ruslam.train import format_report, load_initial_weights, train
 from ruslam.training.module import NonFiniteLossError
 
-TINY = ["data.num_images=6", "data.height=64", "data.width=96", "datamodule.image_size=null",
+TINY = ["model=uwnet", "data.num_images=6", "data.height=64", "data.width=96", "datamodule.image_size=null",
         "datamodule.val_size=2", "datamodule.batch_size=2", "datamodule.num_workers=0",
         "teacher.global_head.fit_images=4", "model.net.head_channels=16", "trainer.enable_progress_bar=false",
         "~callbacks.progress_bar"]
