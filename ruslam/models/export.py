@@ -64,7 +64,7 @@ def build_network(config: dict) -> torch.nn.Module:
 
         return XFeatStudent(**config, teacher_weights="none")
     if arch != "uwnet":
-        raise TypeError(f"unknown architecture {arch!r}")
+        raise InputError(f"weights config names an unknown architecture {arch!r}; expected 'uwnet' or 'xfeat_student'.")
     return UWNet(**config)
 
 
