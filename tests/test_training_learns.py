@@ -11,8 +11,8 @@ from ruslam.train import train
 
 RUN = ["data.num_images=20", "data.height=64", "data.width=96", "datamodule.image_size=null",
        "datamodule.val_size=4", "datamodule.batch_size=4", "datamodule.num_workers=0",
-       "teacher.global_head.fit_images=4", "model=uwnet", "model.net.pretrained_path=null", "model.net.head_channels=16",
-       "trainer.max_epochs=6",
+       "teacher.global_head.fit_images=4", "model=uwnet", "model.net.pretrained_path=null",
+       "model.net.head_channels=16", "trainer.max_epochs=6",
        "trainer.check_val_every_n_epoch=6", "trainer.enable_progress_bar=false", "~callbacks.progress_bar",
        "logger=none", "+trainer.enable_checkpointing=false", "~callbacks.model_checkpoint", "~callbacks.lr_monitor"]
 
