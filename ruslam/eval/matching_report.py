@@ -191,15 +191,20 @@ def csv_table(summary: dict, labels: dict, skipped: dict, bins, thresholds) -> s
     return buf.getvalue()
 
 
-def run(cfg: DictConfig) -> dict:
-    """Table 2 on ``cfg.dataset`` for ``cfg.extractors``; torch runs with ``task.torch_threads`` during the run."""
+def with_task_threads(cfg: DictConfig, fn) -> dict:
+    """``fn(cfg)`` with torch at ``task.torch_threads`` threads (when set), the previous count restored after."""
     threads = torch.get_num_threads()
     if cfg.task.get("torch_threads"):
         torch.set_num_threads(int(cfg.task.torch_threads))
     try:
-        return _run(cfg)
+        return fn(cfg)
     finally:
         torch.set_num_threads(threads)
+
+
+def run(cfg: DictConfig) -> dict:
+    """Table 2 on ``cfg.dataset`` for ``cfg.extractors``; torch runs with ``task.torch_threads`` during the run."""
+    return with_task_threads(cfg, _run)
 
 
 def _run(cfg: DictConfig) -> dict:

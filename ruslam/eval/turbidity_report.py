@@ -17,17 +17,17 @@ import re
 from pathlib import Path
 
 import numpy as np
-import torch
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
+from ruslam.atomic_files import atomic_write
 from ruslam.eval.matching_report import (
-    atomic_write,
     bin_name,
     evaluate_dataset,
     resolve_extractors,
     row_labels,
     summarize_by_bin,
+    with_task_threads,
 )
 
 
@@ -49,13 +49,8 @@ def class_dataset(dataset_cfg: DictConfig, settings: dict, name: str):
 
 
 def run(cfg: DictConfig) -> dict:
-    threads = torch.get_num_threads()
-    if cfg.task.get("torch_threads"):
-        torch.set_num_threads(int(cfg.task.torch_threads))
-    try:
-        return _run(cfg)
-    finally:
-        torch.set_num_threads(threads)
+    """MMA per class of water for ``cfg.extractors``, with torch at ``task.torch_threads`` during the run."""
+    return with_task_threads(cfg, _run)
 
 
 def _run(cfg: DictConfig) -> dict:
