@@ -71,6 +71,25 @@ def test_two_view_initialization_recovers_motion_up_to_scale(planar):
     assert np.abs(X_est[good] * scale - X[good]).max() < 0.05
 
 
+@pytest.mark.parametrize("noise_px", [0.0, 1.0])
+def test_two_view_initialization_picks_the_real_motion_over_a_flat_seafloor(noise_px):
+    """A camera looking down at a plane and moving parallel to it: H has two exact decompositions (the spurious
+    one rotates the camera by ~the parallax angle), and noisy keypoints make the degenerate F look good."""
+    rng = np.random.default_rng(7)
+    X = np.c_[rng.uniform(-3, 3, 500), rng.uniform(-2, 2, 500), np.full(500, 5.0)]
+    T2 = se3_exp(np.array([0.0, 0.005, 0.0, 0.3, 0.0, 0.0]))  # 0.3 deg of rotation, 0.3 m sideways
+    x1, _ = project(K, np.eye(4), X)
+    x2, _ = project(K, T2, X)
+    x1, x2 = x1 + rng.normal(0, noise_px, x1.shape), x2 + rng.normal(0, noise_px, x2.shape)
+    out = two_view_initialization(x1, x2, K, seed=0, sigma=max(noise_px, 1.0) * 1.5)
+    assert out is not None
+    T_est, _, _, model = out
+    assert model == "homography"
+    t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
+    assert np.degrees(np.arccos(T_est[:3, 3] @ t_true / np.linalg.norm(T_est[:3, 3]))) < 5
+    assert np.abs(T_est[:3, :3] - T2[:3, :3]).max() < 0.02
+
+
 def test_two_view_initialization_refuses_pure_rotation():
     X = cloud(300, seed=4)
     T2 = pose_matrix(se3_exp(np.array([0.0, 0.1, 0.0, 0, 0, 0]))[:3, :3], np.zeros(3))

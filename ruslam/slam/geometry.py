@@ -77,47 +77,61 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
     return np.sum(np.where(e2 < CHI2_1DOF, CHI2_2DOF - e2, 0) + np.where(e1 < CHI2_1DOF, CHI2_2DOF - e1, 0))
 
 
-def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points):
+def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_px=2.0, rotation_ratio=0.5):
     """Pick the (R, t) that triangulates the most good points; refuse when two hypotheses are close."""
     T1 = np.eye(4)
     results = []
     for R, t in candidates:
         T2 = pose_matrix(R, np.ravel(t) / max(np.linalg.norm(t), 1e-12))
         X = triangulate(K, T1, x1, K, T2, x2)
-        good = triangulation_mask(X, K, T1, x1, K, T2, x2, max_error_px=2.0, min_parallax_deg=0.0)
+        good = triangulation_mask(X, K, T1, x1, K, T2, x2, max_error_px=max_error_px, min_parallax_deg=0.0)
         r1, r2 = X, X - inverse_pose(T2)[:3, 3]  # camera 1 sits at the origin
         cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
         parallax = np.rad2deg(np.arccos(np.clip(np.sort(cos[good])[::-1], -1, 1)))
         par = parallax[min(49, len(parallax) - 1)] if len(parallax) else 0.0  # ORB: 50th smallest parallax
         results.append((int(good.sum()), T2, X, good, par))
     results.sort(key=lambda r: -r[0])
-    n_best, T2, X, good, par = results[0]
-    n_second = results[1][0] if len(results) > 1 else 0
-    if n_best < min_points or n_second > 0.7 * n_best or par < min_parallax_deg:
+    if results[0][0] < min_points:
+        return None
+    close = [r for r in results if r[0] > 0.7 * results[0][0]]
+    if len(close) > 1:
+        # A plane (a seafloor seen from above) has two exact solutions, the spurious one rotating the camera by
+        # about the parallax angle (Faugeras-Lustman): between video frames the smaller rotation is the real one
+        # when it is clearly smaller; otherwise wait for a better pair.
+        close.sort(key=lambda r: _rotation_deg(r[1]))
+        if _rotation_deg(close[0][1]) > rotation_ratio * _rotation_deg(close[1][1]):
+            return None
+    n_best, T2, X, good, par = close[0]
+    if n_best < min_points or par < min_parallax_deg:
         return None
     return T2, X, good
 
 
+def _rotation_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0))))
+
+
 def two_view_initialization(
     x1: np.ndarray, x2: np.ndarray, K: np.ndarray, seed: int = 0, min_parallax_deg: float = 1.0,
-    min_points: int = 50, homography_ratio: float = 0.45,
+    min_points: int = 50, homography_ratio: float = 0.40, sigma: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
     """Monocular map initialisation from matches x1 <-> x2 (ORB-SLAM: score H and F, keep the better model).
 
     Returns (T2_cw with camera 1 at the origin, world points [N, 3], valid mask [N], model name) with the scene
     scaled to unit median depth in camera 1, or None when the geometry is not trustworthy (too little parallax,
-    ambiguous solutions, too few points).
+    ambiguous solutions, too few points). `sigma` is the keypoint noise in px: models are scored against it, so a
+    learned extractor's noisier keypoints do not make F (degenerate on a flat seafloor) look better than H.
     """
     if len(x1) < max(min_points, 8):
         return None
     x1 = np.asarray(x1, np.float64)
     x2 = np.asarray(x2, np.float64)
     cv2.setRNGSeed(seed)
-    H, _ = cv2.findHomography(x1, x2, cv2.RANSAC, 2.0, maxIters=500, confidence=0.999)
+    H, _ = cv2.findHomography(x1, x2, cv2.RANSAC, 2.0 * sigma, maxIters=500, confidence=0.999)
     cv2.setRNGSeed(seed)
-    F, _ = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, 1.0, 0.999, 500)
-    s_h = _homography_score(H, x1, x2) if H is not None else 0.0
-    s_f = _fundamental_score(F[:3], x1, x2) if F is not None and F.shape[0] >= 3 else 0.0
+    F, _ = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, 1.0 * sigma, 0.999, 500)
+    s_h = _homography_score(H, x1, x2, sigma) if H is not None else 0.0
+    s_f = _fundamental_score(F[:3], x1, x2, sigma) if F is not None and F.shape[0] >= 3 else 0.0
     if s_h + s_f <= 0:
         return None
     if s_h / (s_h + s_f) > homography_ratio:
@@ -129,7 +143,7 @@ def two_view_initialization(
         E = K.T @ F[:3] @ K
         R1, R2, t = cv2.decomposeEssentialMat(E)
         candidates = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
-    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points)
+    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma)
     if best is None:
         return None
     T2, X, good = best

@@ -185,7 +185,7 @@ class Tracker:
                 self.init_frame = frame if len(frame) >= c.init_min_matches else None
             return False
         out = two_view_initialization(ref.keypoints[ip], frame.keypoints[ik], frame.K, self.seed + frame.index,
-                                      c.init_min_parallax_deg, c.init_min_matches // 2)
+                                      c.init_min_parallax_deg, c.init_min_matches // 2, sigma=self.sigma)
         if out is None:
             return False
         T2, X, good, model = out
