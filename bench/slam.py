@@ -1,18 +1,25 @@
 """SLAM throughput at 640x480 on 2 threads, synchronous mode (mapping and loop closing inline), XFeat and ORB.
 
     nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo] [--no-loop]
+    nice .venv/bin/python bench/slam.py --variant dev:turn9 --profile     # a robustness-matrix variant, per stage
 
 For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
 SLAM figure is frames / (sum of per-frame times: extraction + tracking + inline mapping + loop closing), so the
 ratio says what the SLAM adds on top of the extractor. Accuracy (APE after Sim3/SE3 alignment, % of path) is
 printed alongside, so a faster setting that breaks tracking shows up. Goals (issue 6): >= 10 frames/s with the
 learned extractor, >= 25 with ORB.
+
+`--profile` runs the SLAM under cProfile and prints the time per stage (ms per frame, share of the run): each
+stage is the cumulative time of the functions that implement it, so nested stages (local BA inside keyframe
+insertion) are listed under their own name and "tracking" excludes the inline mapping it triggers.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import logging
+import pstats
 import time
 
 import numpy as np
@@ -25,6 +32,47 @@ from ruslam.slam.loop_closing import LoopConfig
 from ruslam.slam.readers import Trajectory
 from ruslam.slam.synthetic_sequence import synthetic_sequence
 
+# stage -> (file suffix, function) pairs whose cumulative times add up to it (see --profile)
+STAGES = {
+    "load frame": [("slam/readers.py", "load")],
+    "extract": [("slam/system.py", "make_frame")],
+    "track (all)": [("slam/tracking.py", "track")],
+    "  keyframe decision": [("slam/tracking.py", "_need_keyframe")],
+    "  local map search": [("slam/tracking.py", "_track_local_map")],
+    "  pose optimisation": [("slam/tracking.py", "_optimize")],
+    "mapping (all)": [("slam/local_mapping.py", "process")],
+    "  triangulate": [("slam/local_mapping.py", "_triangulate")],
+    "  fuse": [("slam/local_mapping.py", "_fuse")],
+    "  local BA": [("slam/local_mapping.py", "_local_bundle_adjustment")],
+    "    gtsam optimize": [("~", "<built-in method gtsam.gtsam.optimize>")],
+    "  culling": [("slam/local_mapping.py", "_cull_points"), ("slam/local_mapping.py", "_cull_keyframes")],
+    "loop closing (all)": [("slam/loop_closing.py", "process")],
+}
+
+
+def stage_table(stats: pstats.Stats, frames: int, total: float) -> str:
+    """Per-stage ms/frame and share of the total, from cumulative times of the stage's functions."""
+    rows = []
+    for stage, functions in STAGES.items():
+        cum = sum(v[3] for (path, _, name), v in stats.stats.items()
+                  for suffix, fn in functions if name == fn and path.endswith(suffix))
+        rows.append(f"  {stage:22s} {1e3 * cum / frames:8.1f} ms/frame {100 * cum / total:5.1f} %")
+    return "\n".join(rows)
+
+
+def load_sequence(args):
+    """The embedded sequence, or `split:variant` of the robustness matrix (conf/dataset/robustness.yaml)."""
+    if args.variant is None:
+        return synthetic_sequence(args.level, stereo=args.stereo, num_frames=200, seed=0, progress=False)
+    from omegaconf import OmegaConf  # noqa: PLC0415
+
+    from ruslam.slam.robustness import robustness_sequence  # noqa: PLC0415
+
+    split, name = args.variant.split(":")
+    grid = OmegaConf.load("conf/dataset/robustness.yaml")
+    knobs = OmegaConf.to_container(grid.splits[split][name])
+    return robustness_sequence(name, progress=False, **knobs)
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -36,10 +84,12 @@ def main() -> None:
     parser.add_argument("--no-loop", action="store_true", help="disable loop closing (APE with vs without)")
     parser.add_argument("--global-ba", action="store_true", help="full-map BA after a loop correction")
     parser.add_argument("--max-keypoints", type=int, default=None, help="extractor keypoint cap (default: its own)")
+    parser.add_argument("--variant", default=None, help="robustness-matrix variant split:name, e.g. dev:turn9")
+    parser.add_argument("--profile", action="store_true", help="time per SLAM stage (cProfile)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
-    seq = synthetic_sequence(args.level, stereo=args.stereo, num_frames=200, seed=0, progress=False)
+    seq = load_sequence(args)
     n = min(args.frames, len(seq))
     images = [seq.load(i) for i in range(n)]
     gt = Trajectory(seq.groundtruth.timestamps[:n], seq.groundtruth.poses[:n])
@@ -58,7 +108,12 @@ def main() -> None:
         extract_fps = n / (time.perf_counter() - start)
         cfg = SLAMConfig(progress=False, synchronous=True, max_frames=n, loop=LoopConfig(enabled=not args.no_loop,
                                                                                    global_bundle_adjustment=args.global_ba))
+        profiler = cProfile.Profile() if args.profile else None
+        if profiler:
+            profiler.enable()
         result = run(seq, extractor, cfg)
+        if profiler:
+            profiler.disable()
         slam_fps = n / float(result.timings.sum())
         ape = float("nan")
         if len(result) >= 3:
@@ -71,6 +126,8 @@ def main() -> None:
         per_frame = np.sort(result.timings)
         print(f"{'':10s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
               f"{1e3 * per_frame[int(0.9 * (n - 1))]:.0f}, max {1e3 * per_frame[-1]:.0f}")
+        if profiler:
+            print(stage_table(pstats.Stats(profiler), n, float(result.timings.sum())))
 
 
 if __name__ == "__main__":
