@@ -172,6 +172,9 @@ def test_dataset_bound_and_per_name_extractor_options(tmp_path):
     cfg.dataset.failure.bound_margin_m = 5.0
     cfg.task.extractor_options = {"orb": {"max_keypoints": 500}}
     assert run(cfg, slam_run=strays)["results"][0]["ok"] and seen == {"ORB": 500}
+    cfg.dataset.extractor_options = {"orb": {"max_keypoints": 300}}  # a dataset's own (e.g. its resolution's)
+    run(cfg, slam_run=strays)
+    assert seen == {"ORB": 300}
 
 
 def test_robustness_matrix_reports_tracking_after_init_maps_and_ape_share(tmp_path):

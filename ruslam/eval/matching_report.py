@@ -34,10 +34,14 @@ from ruslam.models.rotation_tta import ROTATIONS, extract_rotations, pool
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
 
 
-def resolve_extractors(names, task: DictConfig) -> tuple[dict, dict]:
-    """Validate every name first (unknown -> one clear error), then build: ({name: extractor}, {name: skip note})."""
+def resolve_extractors(names, task: DictConfig, extra_options=None) -> tuple[dict, dict]:
+    """Validate every name first (unknown -> one clear error), then build: ({name: extractor}, {name: skip note}).
+
+    `extra_options` ({name: {key: value}}, e.g. a dataset's own) update `task.extractor_options` per name."""
     weights = dict(task.get("weights") or {})
     options = OmegaConf.to_container(OmegaConf.create(task.get("extractor_options") or {}), resolve=True)
+    extra = OmegaConf.to_container(OmegaConf.create(extra_options or {}), resolve=True)
+    options = {name: {**options.get(name, {}), **extra.get(name, {})} for name in {*options, *extra}}
     for name in names:
         if name not in weights and name not in EXTRACTORS and Path(str(name)).suffix not in WEIGHT_SUFFIXES:
             raise ValueError(

@@ -321,7 +321,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
             raise InputError(f"dataset.select names unknown sequence(s) {unknown}; expected some of {list(sequences)}.")
         sequences = {str(s): sequences[str(s)] for s in select}
     opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
-    extractors, skipped = resolve_extractors(list(cfg.extractors), task)
+    extractors, skipped = resolve_extractors(list(cfg.extractors), task, dataset.get("extractor_options"))
     methods = list(extractors)
     rule = OmegaConf.merge(task.failure, dataset.get("failure") or {})  # a dataset may rescale the bound
     label = dataset_label(dataset, opened)
