@@ -1,8 +1,8 @@
 """Tracking (paper 3.3): initialisation, motion model, fallbacks, local-map tracking, keyframes, recovery.
 
 A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when
-that fails, matched by descriptor to the reference keyframe's points (kNN + ratio, pose from the last one or PnP),
-then to the whole local map by descriptor without any window (PnP RANSAC: the pose of a fast turn is unknown, so no
+that fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the
+reference keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window (PnP RANSAC: the pose of a fast turn is unknown, so no
 prior is trusted). When all fail the tracker is lost: it relocalises against the active map (the latest keyframes
 and, with a global descriptor, retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once
 (ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the
@@ -56,6 +56,7 @@ class TrackingConfig:
     reloc_candidates: int = 5
     lost_frames: int = 3  # failed relocalisations before a new map is started
     local_map_fallback: bool = True  # last fallback: the local map by descriptor + PnP RANSAC
+    last_frame_fallback: bool = True  # first fallback: the last frame's points by descriptor (fast turns)
 
 
 def _alive(p: MapPoint | None) -> MapPoint | None:
@@ -266,7 +267,10 @@ class Tracker:
                 if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
                     return True
-        if self._track_reference_keyframe(frame):
+        if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last):
+            log.debug("Frame %d: last frame by descriptor.", frame.index)
+            return True
+        if self._track_by_descriptor(frame, self.reference):
             log.debug("Frame %d: reference keyframe by descriptor.", frame.index)
             return True
         if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
@@ -287,23 +291,24 @@ class Tracker:
         frame.points = [None] * len(frame)
         return self._pnp(frame, [points[a] for a in ia], ib)
 
-    def _track_reference_keyframe(self, frame: Frame) -> bool:
-        """Fallback: kNN + ratio test against the reference keyframe's points, then the pose (PnP if needed)."""
+    def _track_by_descriptor(self, frame: Frame, ref: Frame) -> bool:
+        """Fallback: kNN + ratio test against the map points of `ref` (the last frame: the closest view in a fast
+        turn; the reference keyframe), then the pose from the last one (PnP if that fails)."""
         frame.points = [None] * len(frame)
-        ref = self.reference
-        idx = ref.matched_indices()
+        idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
         if len(idx) == 0:
             return False
         ia, ib = match_knn_ratio(ref.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
                                  self.cfg.ratio)
         if len(ia) < 15:
             return False
-        for a, b in zip(idx[ia], ib, strict=True):
-            frame.points[b] = ref.points[a]
+        points = [_alive(ref.points[a]) for a in idx[ia]]
+        for p, b in zip(points, ib, strict=True):
+            frame.points[b] = p
         frame.T_cw = self.last.T_cw.copy()
         if self._optimize(frame) >= 10:
             return True
-        return self._pnp(frame, [ref.points[a] for a in idx[ia]], ib)
+        return self._pnp(frame, points, ib)
 
     def _pnp(self, frame: Frame, points: list[MapPoint], kp_idx: np.ndarray) -> bool:
         X = np.stack([p.position for p in points])
