@@ -160,15 +160,14 @@ def check_slam(cfg: DictConfig) -> None:
     dataset = cfg.dataset
     check_extractors(cfg)
     require_choice("dataset.metrics", dataset.metrics, SLAM_METRICS)
-    sequences = OmegaConf.to_container(dataset.sequences, resolve=True)
-    if dataset.get("select"):
-        require_choice("dataset.select", dataset.select, list(sequences))
+    if dataset.get("select") and dataset.get("sequences") is not None:  # a folder's are found by the run itself
+        require_choice("dataset.select", dataset.select, list(OmegaConf.to_container(dataset.sequences, resolve=True)))
     require_choice("slam.sensor", [cfg.slam.get("sensor", "auto")], SLAM_SENSORS)
     root = dataset.get("root")
     if root != "__embedded__" and (root is None or not Path(str(root)).is_dir()):
         where = f"dataset.root={root} is not a folder" if root else "dataset.root is not set"
-        raise MissingInput(f"Dataset {dataset.label} not found: {where}. {dataset.download} Then pass "
-                           f"dataset.root=<folder>.")
+        name = dataset.get("label") or dataset.name
+        raise MissingInput(f"Dataset {name} not found: {where}. {dataset.download} Then pass dataset.root=<folder>.")
 
 
 def check_synthesis(cfg: DictConfig) -> None:

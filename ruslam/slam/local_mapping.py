@@ -35,7 +35,7 @@ class MappingConfig:
     max_distance_float: float = 0.5
     ratio: float = 0.8
     sigma_binary: float = 1.0  # keypoint noise (px), as TrackingConfig
-    sigma_float: float = 1.5
+    sigma_float: float = 1.0
     triangulation_neighbours: int = 10
     epipolar_px: float = 4.0
     min_parallax_deg: float = 1.0

@@ -2,11 +2,11 @@
 
 A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when
 that fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the
-reference keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window (PnP RANSAC: the pose of a fast turn is unknown, so no
-prior is trusted). When all fail the tracker is lost: it relocalises against the active map (the latest keyframes
-and, with a global descriptor, retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once
-(ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the
-maps when they meet again.
+reference keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor
+without any window (PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted). When all fail the
+tracker is lost: it relocalises against the active map (the latest keyframes and, with a global descriptor,
+retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once (ORB-SLAM3); while that map
+initialises it keeps trying to relocalise in the map it lost. Loop closing merges the maps when they meet again.
 
 The Tracker holds no threads: it calls `mapper.insert_keyframe(kf)` and `mapper.idle()`, which the synchronous
 mapper runs inline and the threaded one queues.
@@ -35,8 +35,8 @@ class TrackingConfig:
     # (0.7 let enough wrong matches through that XFeat lost track at 3x the embedded speed, see README)
     ratio: float = 0.8  # kNN ratio test
     sigma_binary: float = 1.0  # keypoint noise (px): Huber width and chi2 outlier test scale with it
-    sigma_float: float = 1.5  # learned extractors (XFeat: matches' epipolar error p90 2.9 px vs ORB 1.4 px)
-    window_ratio: float = 0.9  # ratio test inside a search window
+    sigma_float: float = 1.0  # learned extractors (1.5, for XFeat's heavier error tail, let wrong matches bias poses)
+    window_ratio: float = 0.8  # ratio test inside a search window (0.9 let XFeat's look-alike neighbours through)
     window_radius: float = 15.0  # px, constant-velocity search (doubled on failure)
     local_map_radius: float = 5.0  # px, local-map search
     min_inliers: int = 30  # tracked map points for a frame to count as tracked
