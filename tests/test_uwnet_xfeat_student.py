@@ -9,7 +9,7 @@ from ruslam import load_extractor
 from ruslam.models.export import export_weights, load_uwnet
 from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
 from ruslam.models.teachers.xfeat import XFeatTeacher
-from ruslam.models.uwnet_xfeat_student import XFeatStudent
+from ruslam.models.uwnet_xfeat_student import XFeatStudent, with_teacher_detector
 from ruslam.train import train
 
 
@@ -57,6 +57,25 @@ def test_export_and_load_extractor_round_trip(tmp_path):
     out = load_extractor(path).extract(image)
     assert out["descriptors"].shape[1] == 64 and out["global_descriptor"].shape == (4096,)
     assert len(out["keypoints"]) > 0
+
+
+def test_teacher_detector_restores_xfeat_keypoints_and_keeps_trained_descriptors(tmp_path):
+    student = XFeatStudent().eval()
+    with torch.no_grad():  # a "trained" student: every added block and the keypoint head moved away from XFeat
+        for name, p in student.named_parameters():
+            if name.startswith(("kp_context", "attention", "deform.3", "xfeat.keypoint_head", "xfeat.block_fusion")):
+                p.add_(torch.randn_like(p) * 0.05)
+    x = _images()
+    reset = with_teacher_detector(student).eval()
+    assert reset.config["attention"] is False
+    with torch.no_grad():
+        got, trained, want = reset(x), student(x), XFeatTeacher()(x)
+    assert (trained["keypoint_logits"] - want["keypoint_logits"]).abs().max() > 1e-2  # the premise: it moved
+    assert (got["keypoint_logits"] - want["keypoint_logits"]).abs().max() < 1e-4
+    assert torch.allclose(got["dense_descriptors"], trained["dense_descriptors"], atol=1e-6)
+    assert torch.allclose(got["global_descriptor"], trained["global_descriptor"], atol=1e-6)
+    loaded = load_uwnet(export_weights(reset, tmp_path / "reset.pt"))  # the file rebuilds without attention
+    assert loaded.config["attention"] is False
 
 
 def test_student_rejects_other_widths():

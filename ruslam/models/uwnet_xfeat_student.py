@@ -129,3 +129,24 @@ class XFeatStudent(nn.Module):
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
         return {"keypoint_logits": logits, "dense_descriptors": desc,
                 "global_descriptor": F.normalize(vlad, dim=-1)}
+
+
+KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "attention.")
+
+
+def with_teacher_detector(student: XFeatStudent, teacher_weights: str | None = None) -> XFeatStudent:
+    """A trained student whose keypoint branch is XFeat's own again (no context projection, no attention).
+
+    Measured on the procedural Upatches (tune set, README "UWNet"): after distillation on the procedural
+    120x160 views the trained descriptors beat XFeat's but the trained keypoint branch detects worse than XFeat's,
+    so the shipped file keeps the teacher's detector; the descriptor branch, DCNs and NetVLAD stay trained.
+    """
+    config = {k: v for k, v in student.config.items() if k != "architecture"}
+    config["attention"] = False
+    out = XFeatStudent(**config, teacher_weights=teacher_weights)  # XFeat's weights; kp_context zero
+    kept = {k: v for k, v in student.state_dict().items() if not k.startswith(KEYPOINT_BRANCH)}
+    missing, unexpected = out.load_state_dict(kept, strict=False)
+    if unexpected or any(not k.startswith(KEYPOINT_BRANCH) for k in missing):
+        raise ValueError(f"with_teacher_detector: the student's weights do not match its architecture "
+                         f"(missing {missing[:3]}, unexpected {unexpected[:3]}).")
+    return out.train(student.training)
