@@ -25,7 +25,7 @@ from ruslam import load_extractor  # noqa: E402
 from ruslam.models.deform_conv import deform_conv2d_fast  # noqa: E402
 from ruslam.models.extractor import decode_sparse  # noqa: E402
 from ruslam.models.uwnet_extractor import SHIPPED_WEIGHTS, UWNetExtractor  # noqa: E402
-from ruslam.models.uwnet_xfeat_student import CELL, _pad  # noqa: E402
+from ruslam.models.uwnet_xfeat_student import CELL, XFeatStudent, _pad  # noqa: E402
 
 
 def candidates(feats: torch.Tensor, hidden: torch.Tensor) -> dict:
@@ -63,14 +63,17 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--reps", type=int, default=15)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="variant (b) weights (default: shipped)")
+    parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="variant (b) weights (default: shipped);"
+                        " the per-block rows use every block of the architecture at step 0")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     image = test_image()
     uwnet = UWNetExtractor.from_file(args.weights)
-    s = uwnet.net
-    if getattr(s, "architecture", None) != "xfeat_student":
+    if getattr(uwnet.net, "architecture", None) != "xfeat_student":
         raise SystemExit(f"--weights {args.weights}: not an XFeat student (variant b) file.")
+    s = XFeatStudent().eval()  # every block, whatever the file keeps (a block's cost does not depend on weights)
+    full = UWNetExtractor.from_file(args.weights)
+    full.net = s
     xfeat = load_extractor("xfeat")
     x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
     m = s.xfeat
@@ -101,7 +104,8 @@ def main() -> None:
 
     stages = {
         "XFeat extract (total)": lambda: xfeat.extract(image),
-        "UWNet extract (total)": lambda: uwnet.extract(image),
+        "UWNet extract (total, --weights file)": lambda: uwnet.extract(image),
+        "UWNet extract (total, every block: attention, two DCNs)": lambda: full.extract(image),
         "shared: XFeat backbone + fusion (1/8, 64 ch)": backbone,
         "shared: keypoint head on 8x8 cells": lambda: m.keypoint_head(m._unfold2d(g, ws=CELL)),
         "XFeat only: reliability head": lambda: m.heatmap_head(feats),

@@ -9,7 +9,7 @@ from ruslam import load_extractor
 from ruslam.models.export import export_weights, load_uwnet
 from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
 from ruslam.models.teachers.xfeat import XFeatTeacher
-from ruslam.models.uwnet_xfeat_student import XFeatStudent, with_teacher_detector
+from ruslam.models.uwnet_xfeat_student import XFeatStudent, with_teacher_detector, without_descriptor_residual
 from ruslam.train import train
 
 
@@ -76,6 +76,27 @@ def test_teacher_detector_restores_xfeat_keypoints_and_keeps_trained_descriptors
     assert torch.allclose(got["global_descriptor"], trained["global_descriptor"], atol=1e-6)
     loaded = load_uwnet(export_weights(reset, tmp_path / "reset.pt"))  # the file rebuilds without attention
     assert loaded.config["attention"] is False
+
+
+def test_without_descriptor_residual_keeps_everything_but_the_dcn_block(tmp_path):
+    student = XFeatStudent().eval()
+    with torch.no_grad():
+        for name, p in student.named_parameters():
+            if name.startswith(("deform", "xfeat.block_fusion", "kp_context")):
+                p.add_(torch.randn_like(p) * 0.05)
+    x = _images()
+    pruned = without_descriptor_residual(student).eval()
+    assert pruned.deform is None and not any(k.startswith("deform.") for k in pruned.state_dict())
+    with torch.no_grad():
+        got, trained = pruned(x), student(x)
+        for p in student.deform[3].parameters():  # the same network with the residual switched off
+            p.zero_()
+        want = student(x)
+    assert (trained["dense_descriptors"] - want["dense_descriptors"]).abs().max() > 1e-3  # the block did act
+    assert torch.allclose(got["dense_descriptors"], want["dense_descriptors"], atol=1e-6)
+    assert torch.allclose(got["keypoint_logits"], trained["keypoint_logits"], atol=1e-6)
+    loaded = load_uwnet(export_weights(pruned, tmp_path / "pruned.pt"))
+    assert loaded.deform is None and loaded.config["descriptor_residual"] is False
 
 
 def test_student_rejects_other_widths():
