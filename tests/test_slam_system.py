@@ -104,3 +104,18 @@ def test_configs_build_the_slam_config():
         built = instantiate(cfg.slam if "slam" in cfg else cfg)
         assert isinstance(built, SLAMConfig) and built.sensor == sensor
         assert built.tracking.min_inliers > 0 and built.loop.top_k > 0
+
+
+def test_a_sudden_turn_is_tracked_from_the_last_frame(caplog):
+    """The camera spins 25 deg about its axis between frames 20 and 21: the constant-velocity windows miss, the
+    last frame's points matched by descriptor give the pose, and no frame is lost."""
+    from ruslam.slam.geometry import pose_matrix
+    from ruslam.slam.optimization import se3_exp
+
+    seq = arc()
+    seq.poses[21:] = seq.poses[21:] @ pose_matrix(se3_exp(np.array([0, 0, np.radians(25), 0, 0, 0]))[:3, :3], 0)
+    with caplog.at_level(logging.DEBUG, logger="ruslam.slam.tracking"):
+        result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert "Frame 21: last frame by descriptor." in caplog.text
+    assert result.tracked_ratio == 1.0
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
