@@ -39,6 +39,16 @@ def test_clahe_on_colour_changes_lightness_and_keeps_the_colour():
     assert floats.dtype == np.uint8 and np.abs(floats.astype(int) - out).max() <= 1
 
 
+def test_auto_stretches_only_flat_frames():
+    flat = (_veiled().astype(float) - 150) / 15 * 3 + 150  # std ~3 grey levels: below the 6.0 default
+    flat = flat.astype(np.uint8)
+    textured = _veiled()  # std ~15
+    auto = ImageConditioning("auto")
+    assert auto(textured) is textured
+    assert auto(flat).std() > 2 * flat.std()
+    assert np.array_equal(auto(flat), ImageConditioning("clahe")(flat))
+
+
 def test_bad_options_are_refused():
     with pytest.raises(ValueError, match="none.*clahe"):
         ImageConditioning("retinex")
