@@ -44,6 +44,8 @@ class TrackingConfig:
     init_window: float = 100.0  # px, monocular initialisation search window
     init_max_frames: int = 40  # restart initialisation from a newer frame after this many (a 20 Hz start: 2 s)
     init_min_parallax_deg: float = 1.0
+    init_sigma_float: float = 1.5  # px, H-vs-F scoring of float keypoints (at 1.0 the degenerate F of a flat floor
+    # won in Jerlov 3C on DEV hard and started the map 23-48 deg off)
     min_keypoints: int = 50  # fewer (black / featureless frame): skip the frame
     kf_max_frames: int = 10  # a keyframe is due after this many frames (if tracking has weakened at all) ...
     kf_min_frames: int = 3  # ... and allowed after this many, like ORB-SLAM's "mapping is idle" (see _need_keyframe)
@@ -186,7 +188,8 @@ class Tracker:
                 self.init_frame = frame if len(frame) >= c.init_min_matches else None
             return False
         out = two_view_initialization(ref.keypoints[ip], frame.keypoints[ik], frame.K, self.seed + frame.index,
-                                      c.init_min_parallax_deg, c.init_min_matches // 2, sigma=self.sigma)
+                                      c.init_min_parallax_deg, c.init_min_matches // 2,
+                                      sigma=self.sigma if self.binary else c.init_sigma_float)
         if out is None:
             return False
         T2, X, good, model = out
