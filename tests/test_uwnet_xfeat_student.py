@@ -99,6 +99,19 @@ def test_without_descriptor_residual_keeps_everything_but_the_dcn_block(tmp_path
     assert loaded.deform is None and loaded.config["descriptor_residual"] is False
 
 
+def test_step_zero_extractor_ranks_keypoints_as_xfeat(tmp_path):
+    """Top-k after XFeat's reliability weighting: with only 60 of the candidates kept, the ranking decides which."""
+    path = export_weights(XFeatStudent().eval(), tmp_path / "step0.pt")
+    rng = np.random.default_rng(1)
+    image = (np.kron(rng.random((12, 16, 3)), np.ones((16, 16, 1))) * 0.7 + rng.random((192, 256, 3)) * 0.3)
+    image = (image * 255).astype(np.uint8)
+    student = load_extractor(path, max_keypoints=60, detection_threshold=0.05).extract(image)
+    xfeat = load_extractor("xfeat", max_keypoints=60).extract(image)
+    same = {tuple(p) for p in np.round(student["keypoints"]).astype(int)} & {
+        tuple(p) for p in np.round(xfeat["keypoints"]).astype(int)}
+    assert len(same) >= 57, len(same)
+
+
 def test_student_rejects_other_widths():
     with pytest.raises(ValueError, match="64-d descriptors"):
         XFeatStudent(descriptor_dim=128)

@@ -65,7 +65,7 @@ class UWNetExtractor(Extractor):
             x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
         out = self.net(x.clamp(0, 1))
         xy, scores, desc = decode_sparse(out["keypoint_logits"], out["dense_descriptors"], (nh, nw), self.conf,
-                                         STRIDE)
+                                         STRIDE, out.get("reliability"))
         scale = xy.new_tensor([w / nw, h / nh])
         xy = (xy + 0.5) * scale - 0.5
         return {

