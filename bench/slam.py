@@ -21,6 +21,7 @@ import cProfile
 import logging
 import pstats
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -69,7 +70,7 @@ def load_sequence(args):
     from ruslam.slam.robustness import robustness_sequence  # noqa: PLC0415
 
     split, name = args.variant.split(":")
-    grid = OmegaConf.load("conf/dataset/robustness.yaml")
+    grid = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "dataset" / "robustness.yaml")
     knobs = OmegaConf.to_container(grid.splits[split][name])
     return robustness_sequence(name, progress=False, **knobs)
 
