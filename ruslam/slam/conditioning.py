@@ -25,12 +25,14 @@ class ImageConditioning:
     clip_limit: float = 2.0  # CLAHE: contrast limit per tile (histogram bins clipped at this x the mean)
     tiles: int = 8  # CLAHE: tiles per image side
     auto_max_std: float = 6.0  # auto: grey std (0-255) below which a frame is flat (DEV: lowtex 4, others >= 7)
+    blur_sigma: float = 0.0  # px; Gaussian blur before CLAHE, 0 = none (CLAHE stretches sensor noise with the texture)
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"Image conditioning method must be one of {METHODS}, got {self.method!r}.")
-        if self.clip_limit <= 0 or self.tiles < 1:
-            raise ValueError(f"CLAHE needs clip_limit > 0 and tiles >= 1, got {self.clip_limit} and {self.tiles}.")
+        if self.clip_limit <= 0 or self.tiles < 1 or self.blur_sigma < 0:
+            raise ValueError(f"CLAHE needs clip_limit > 0, tiles >= 1 and blur_sigma >= 0, got {self.clip_limit}, "
+                             f"{self.tiles} and {self.blur_sigma}.")
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """The conditioned image (uint8, same shape); ``method="none"`` returns the input itself."""
@@ -40,6 +42,8 @@ class ImageConditioning:
             image = np.clip(np.asarray(image, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
         if self.method == "auto" and _grey(image).std() >= self.auto_max_std:
             return image
+        if self.blur_sigma > 0:
+            image = cv2.GaussianBlur(image, (0, 0), self.blur_sigma)
         clahe = cv2.createCLAHE(clipLimit=self.clip_limit, tileGridSize=(self.tiles, self.tiles))
         if image.ndim == 2:
             return clahe.apply(image)

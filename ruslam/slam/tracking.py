@@ -296,7 +296,9 @@ class Tracker:
 
     def _track_by_descriptor(self, frame: Frame, ref: Frame) -> bool:
         """Fallback: kNN + ratio test against the map points of `ref` (the last frame: the closest view in a fast
-        turn; the reference keyframe), then the pose from the last one (PnP if that fails)."""
+        turn; the reference keyframe), then the pose by PnP RANSAC (from the last pose if that fails). PnP comes
+        first: in a turn the last pose is several degrees off, and from there noisy matches (ORB on low-contrast
+        texture) pulled the pose optimisation into a wrong minimum that the map then kept (DEV lowtex, BENCHMARKS.md)."""
         frame.points = [None] * len(frame)
         idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
         if len(idx) == 0:
@@ -306,12 +308,12 @@ class Tracker:
         if len(ia) < 15:
             return False
         points = [_alive(ref.points[a]) for a in idx[ia]]
+        if self._pnp(frame, points, ib):
+            return True
         for p, b in zip(points, ib, strict=True):
             frame.points[b] = p
         frame.T_cw = self.last.T_cw.copy()
-        if self._optimize(frame) >= 10:
-            return True
-        return self._pnp(frame, points, ib)
+        return self._optimize(frame) >= 10
 
     def _pnp(self, frame: Frame, points: list[MapPoint], kp_idx: np.ndarray) -> bool:
         X = np.stack([p.position for p in points])
