@@ -2,12 +2,17 @@
 
     nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo] [--no-loop]
     nice .venv/bin/python bench/slam.py --variant dev:turn9 --profile     # a robustness-matrix variant, per stage
+    nice .venv/bin/python bench/slam.py --variant test:base --laps 16 --frames 2000 --extractors orb   # memory
 
 For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
 SLAM figure is frames / (sum of per-frame times: extraction + tracking + inline mapping + loop closing), so the
 ratio says what the SLAM adds on top of the extractor. Accuracy (APE after Sim3/SE3 alignment, % of path) is
 printed alongside, so a faster setting that breaks tracking shows up. Goals (issue 6): >= 10 frames/s with the
 learned extractor, >= 25 with ORB.
+
+Memory: the resident set size is sampled every 0.5 s during each SLAM run; the bench prints its peak and its
+growth over the second half of the frames (MB per 1,000 frames) next to the map's final size, so a leak (growth
+beyond what the map's points and keyframes hold) shows on a long run.
 
 `--profile` runs the SLAM under cProfile and prints the time per stage (ms per frame, share of the run): each
 stage is the cumulative time of the functions that implement it, so nested stages (local BA inside keyframe
@@ -19,7 +24,9 @@ from __future__ import annotations
 import argparse
 import cProfile
 import logging
+import os
 import pstats
+import threading
 import time
 from pathlib import Path
 
@@ -61,6 +68,36 @@ def stage_table(stats: pstats.Stats, frames: int, total: float) -> str:
     return "\n".join(rows)
 
 
+class MemorySampler(threading.Thread):
+    """Resident set size (MB) of this process every `period` seconds, with the time of each sample."""
+
+    def __init__(self, period: float = 0.5):
+        super().__init__(daemon=True)
+        self.period, self.samples, self.done = period, [], threading.Event()
+
+    def run(self):
+        page_mb = os.sysconf("SC_PAGE_SIZE") / 2**20
+        while not self.done.is_set():
+            with open("/proc/self/statm") as f:
+                self.samples.append((time.perf_counter(), int(f.read().split()[1]) * page_mb))
+            self.done.wait(self.period)
+
+    def stop(self) -> np.ndarray:
+        self.done.set()
+        self.join()
+        return np.array(self.samples)
+
+
+def memory_line(samples: np.ndarray, timings: np.ndarray) -> str:
+    """Peak RSS and its growth over the second half of the frames (samples placed on frames by their time)."""
+    if len(samples) < 4:
+        return "memory: run too short to sample"
+    frame_at = np.interp(samples[:, 0] - samples[0, 0], np.cumsum(timings), np.arange(1, len(timings) + 1))
+    late = frame_at >= len(timings) / 2
+    slope = np.polyfit(frame_at[late], samples[late, 1], 1)[0] if late.sum() >= 2 else float("nan")
+    return f"peak RSS {samples[:, 1].max():.0f} MB, growth over the second half {1e3 * slope:.1f} MB / 1000 frames"
+
+
 def load_sequence(args):
     """The embedded sequence, or `split:variant` of the robustness matrix (conf/dataset/robustness.yaml)."""
     if args.variant is None:
@@ -72,6 +109,8 @@ def load_sequence(args):
     split, name = args.variant.split(":")
     grid = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "dataset" / "robustness.yaml")
     knobs = OmegaConf.to_container(grid.splits[split][name])
+    if args.laps is not None:
+        knobs["laps"] = args.laps
     return robustness_sequence(name, progress=False, **knobs)
 
 
@@ -86,6 +125,7 @@ def main() -> None:
     parser.add_argument("--global-ba", action="store_true", help="full-map BA after a loop correction")
     parser.add_argument("--max-keypoints", type=int, default=None, help="extractor keypoint cap (default: its own)")
     parser.add_argument("--variant", default=None, help="robustness-matrix variant split:name, e.g. dev:turn9")
+    parser.add_argument("--laps", type=float, default=None, help="laps of the --variant (a long run for memory)")
     parser.add_argument("--profile", action="store_true", help="time per SLAM stage (cProfile)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -112,7 +152,10 @@ def main() -> None:
         profiler = cProfile.Profile() if args.profile else None
         if profiler:
             profiler.enable()
+        sampler = MemorySampler()
+        sampler.start()
         result = run(seq, extractor, cfg)
+        memory = sampler.stop()
         if profiler:
             profiler.disable()
         slam_fps = n / float(result.timings.sum())
@@ -127,6 +170,8 @@ def main() -> None:
         per_frame = np.sort(result.timings)
         print(f"{'':10s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
               f"{1e3 * per_frame[int(0.9 * (n - 1))]:.0f}, max {1e3 * per_frame[-1]:.0f}")
+        print(f"{'':10s} {memory_line(memory, result.timings)}; final map {result.num_keyframes} keyframes, "
+              f"{result.num_points} points")
         if profiler:
             print(stage_table(pstats.Stats(profiler), n, float(result.timings.sum())))
 
