@@ -119,3 +119,30 @@ def test_a_sudden_turn_is_tracked_from_the_last_frame(caplog):
     assert "Frame 21: last frame by descriptor." in caplog.text
     assert result.tracked_ratio == 1.0
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
+def test_a_keyframe_moved_by_inline_mapping_gives_its_frame_the_new_pose(monkeypatch):
+    """A loop correction or a merge moves the whole map while the keyframe that triggered it is inserted: the frame
+    that became that keyframe must take the moved pose. Here the map is shifted by 0.5 m at the 8th keyframe; a
+    stale frame pose would put that frame 0.5 m off the rest of the (consistently shifted) trajectory."""
+    from ruslam.slam.local_mapping import LocalMapper
+    from ruslam.slam.loop_closing import LoopConfig
+    from ruslam.slam.map import inverse_pose
+
+    shift = np.eye(4)
+    shift[:3, 3] = [0.5, 0.0, 0.0]
+    original = LocalMapper.insert_keyframe
+
+    def insert_and_shift(self, kf):
+        original(self, kf)
+        if self.processed == 8:  # move every keyframe and point of the map (x' = x + shift)
+            for k in self.map.keyframes:
+                k.T_cw = k.T_cw @ inverse_pose(shift)
+            for p in self.map.points:
+                p.position = p.position + shift[:3, 3]
+
+    monkeypatch.setattr(LocalMapper, "insert_keyframe", insert_and_shift)
+    seq = arc(30)
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False, loop=LoopConfig(enabled=False)))
+    assert result.tracked_ratio == 1.0
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01

@@ -121,6 +121,9 @@ class Tracker:
             self._drop_outliers(frame)
             if self._need_keyframe(frame):
                 self._insert_keyframe(frame)
+                # inline mapping may have moved the new keyframe (local BA, a loop correction, a map merge): the
+                # frame is that keyframe, so it takes its pose (a stale one left a 1.3 m spike at every loop)
+                frame.T_cw = self.reference.pose().copy()
             self.last = frame
             self.last_ref = (self.reference, frame.T_cw @ inverse_pose(self.reference.T_cw),
                              self.reference.current_scale())
