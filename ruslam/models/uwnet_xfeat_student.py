@@ -45,9 +45,9 @@ def _zero_(module: nn.Module) -> nn.Module:
 
 class XFeatStudent(nn.Module):
     """Input RGB [B, 3, H, W] in [0, 1], H and W multiples of 8. Same outputs as `UWNet`: ``keypoint_logits``
-    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit);
-    in eval mode also XFeat's ``reliability`` [B, 1, H/8, W/8], which the extractor uses to rank keypoints as
-    XFeat does.
+    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit),
+    and XFeat's ``reliability`` [B, 1, H/8, W/8] in (0, 1), which the extractor uses to rank keypoints as XFeat
+    does.
 
     ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`);
     ``deformable`` only says whether that block's convolutions are deformable, so without the block it is recorded
@@ -138,8 +138,9 @@ class XFeatStudent(nn.Module):
         vlad = self.netvlad(desc.contiguous())
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
         out = {"keypoint_logits": logits, "dense_descriptors": desc, "global_descriptor": F.normalize(vlad, dim=-1)}
-        if not self.training:  # XFeat's reliability map (its own head, not trained here) ranks the keypoints
-            out["reliability"] = m.heatmap_head(feats)[..., :hc, :wc]
+        # XFeat's reliability map ranks the keypoints in the extractor. In training the head sees detached
+        # features, so its own loss (`ReliabilityLoss`, off by default) moves the head and nothing else.
+        out["reliability"] = m.heatmap_head(feats.detach() if self.training else feats)[..., :hc, :wc]
         return out
 
 
