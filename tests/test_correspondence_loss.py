@@ -48,3 +48,22 @@ def test_transfer_and_cell_centres_follow_the_pixel_convention():
     assert torch.equal(c[:4], torch.tensor([[3.5, 3.5], [11.5, 3.5], [19.5, 3.5], [3.5, 11.5]]))
     h = torch.tensor([[2.0, 0, 1], [0, 2, -1], [0, 0, 1]])
     assert torch.allclose(transfer(c[:1], h), torch.tensor([[8.0, 6.0]]))
+
+
+def test_reliability_loss_rewards_a_map_that_knows_which_cells_match():
+    """Half of B's cells are shuffled: a reliability map that is high on the intact half and low on the shuffled
+    half scores a much lower loss than the inverted map (and than a constant 0.5)."""
+    from ruslam.models.reliability_loss import ReliabilityLoss
+
+    loss, rel = CorrespondenceLoss(num_samples=1000), ReliabilityLoss()
+    desc_a = _dense(b=1)
+    flat = desc_a.flatten(2).clone()
+    broken = torch.arange(12 * 16) % 2 == 1  # every other cell of B is replaced by another image's descriptor
+    flat[:, :, broken] = _dense(b=1, seed=5).flatten(2)[:, :, broken]
+    desc_b = flat.reshape(desc_a.shape)
+    samples = loss.sample(desc_a, desc_b, torch.eye(3)[None])
+    good = (~broken).float().reshape(1, 1, 12, 16) * 0.98 + 0.01
+    assert rel(good, samples) < 0.05
+    assert rel(1 - good, samples) > 3.0
+    assert rel(torch.full_like(good, 0.5), samples) > 0.6
+    assert rel(good, []) == 0

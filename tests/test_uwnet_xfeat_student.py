@@ -97,6 +97,9 @@ def test_without_descriptor_residual_keeps_everything_but_the_dcn_block(tmp_path
     assert torch.allclose(got["keypoint_logits"], trained["keypoint_logits"], atol=1e-6)
     loaded = load_uwnet(export_weights(pruned, tmp_path / "pruned.pt"))
     assert loaded.deform is None and loaded.config["descriptor_residual"] is False
+    # Without the block nothing is deformable: the file's config says so (it asked for deformable=True).
+    assert student.config["deformable"] is True and loaded.config["deformable"] is False
+    assert XFeatStudent(descriptor_residual=False, deformable=True).config["deformable"] is False
 
 
 def test_step_zero_extractor_ranks_keypoints_as_xfeat(tmp_path):
@@ -118,11 +121,67 @@ def test_student_rejects_other_widths():
 
 
 def test_student_trains_through_the_composed_config(tmp_path):
+    start = export_weights(XFeatStudent(vlad_codebook=str(PACKAGED_XFEAT_CODEBOOK)), tmp_path / "start.pt")
     cfg = compose("train", [f"out_dir={tmp_path}", f"datamodule.cache_root={tmp_path / 'cache'}",
                             "model=uwnet_xfeat_student", "data.num_images=6", "data.height=64", "data.width=96",
                             "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
                             "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
                             "trainer.enable_progress_bar=false", "~callbacks.progress_bar",
-                            "+trainer.fast_dev_run=true"])
+                            "+trainer.fast_dev_run=true", f"init_weights={start}", "model.net.frozen_batchnorm=true"])
     assert train(cfg) is not None
-    assert isinstance(load_uwnet(tmp_path / "uwnet.pt"), XFeatStudent)
+    trained = load_uwnet(tmp_path / "uwnet.pt")
+    assert isinstance(trained, XFeatStudent)
+    # XFeat's batch norms keep their statistics through a Lightning fit (Lightning bypasses the student's train()).
+    before, after = load_uwnet(start).state_dict(), trained.state_dict()
+    stats = [k for k in before if k.startswith("xfeat.") and "running_" in k]
+    assert stats and all(torch.equal(before[k], after[k]) for k in stats)
+
+
+def test_unfrozen_batchnorm_updates_xfeat_statistics():
+    student = XFeatStudent(frozen_batchnorm=False).train()
+    before = {k: v.clone() for k, v in student.state_dict().items() if "running_mean" in k}
+    with torch.no_grad():
+        student(_images())
+    assert any(not torch.equal(before[k], student.state_dict()[k]) for k in before if k.startswith("xfeat.block"))
+    assert XFeatStudent().train().xfeat.block1[0].layer[1].training is False
+
+
+def test_training_only_the_reliability_head_changes_nothing_else(tmp_path):
+    start = export_weights(XFeatStudent(vlad_codebook=str(PACKAGED_XFEAT_CODEBOOK)), tmp_path / "start.pt")
+    cfg = compose("train", [f"out_dir={tmp_path}", f"datamodule.cache_root={tmp_path / 'cache'}",
+                            "model=uwnet_xfeat_student", "data.num_images=6", "data.height=64", "data.width=96",
+                            "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
+                            "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
+                            "trainer.enable_progress_bar=false", "~callbacks.progress_bar", "trainer.max_epochs=1",
+                            "model.reliability_weight=1.0", "model.trainable=[xfeat.heatmap_head.]",
+                            "model.optimizer.lr=0.01", f"init_weights={start}"])
+    train(cfg)
+    before = load_uwnet(start).state_dict()
+    after = load_uwnet(tmp_path / "uwnet.pt").state_dict()
+    changed = {k for k in before if (before[k].float() - after[k].float()).abs().max() > 1e-2}
+    assert changed and all(k.startswith("xfeat.heatmap_head.") for k in changed), sorted(changed)[:5]
+    metrics = (tmp_path / "csv" / "version_0" / "metrics.csv").read_text()
+    assert "val/reliability" in metrics
+
+
+def test_trainable_must_name_parameters():
+    from ruslam.errors import InputError
+    from ruslam.training.module import DistillationModule
+
+    with pytest.raises(InputError, match="model.trainable"):
+        DistillationModule(XFeatStudent(), torch.optim.Adam, trainable=["backbone."])
+
+
+def test_reliability_loss_trains_the_reliability_head_only():
+    from ruslam.models.correspondence_loss import CorrespondenceLoss
+    from ruslam.models.reliability_loss import ReliabilityLoss
+
+    student = XFeatStudent().train()
+    x = _images(n=1)
+    out = student(torch.cat([x, x]))
+    desc_a, desc_b = out["dense_descriptors"].chunk(2)
+    samples = CorrespondenceLoss().sample(desc_a, desc_b, torch.eye(3)[None])
+    ReliabilityLoss()(out["reliability"].chunk(2)[0], samples).backward()
+    grads = {k: p.grad for k, p in student.named_parameters()}
+    assert any(g is not None and g.abs().sum() > 0 for k, g in grads.items() if k.startswith("xfeat.heatmap_head."))
+    assert all(g is None or g.abs().sum() == 0 for k, g in grads.items() if not k.startswith("xfeat.heatmap_head."))

