@@ -301,7 +301,8 @@ class Tracker:
         """Fallback: kNN + ratio test against the map points of `ref` (the last frame: the closest view in a fast
         turn; the reference keyframe), then the pose by PnP RANSAC (from the last pose if that fails). PnP comes
         first: in a turn the last pose is several degrees off, and from there noisy matches (ORB on low-contrast
-        texture) pulled the pose optimisation into a wrong minimum that the map then kept (DEV lowtex, BENCHMARKS.md)."""
+        texture) pulled the pose optimisation into a wrong minimum that the map then kept (DEV lowtex,
+        BENCHMARKS.md)."""
         frame.points = [None] * len(frame)
         idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
         if len(idx) == 0:
