@@ -120,14 +120,19 @@ def test_student_rejects_other_widths():
         XFeatStudent(descriptor_dim=128)
 
 
+def _tiny_training(tmp_path, init_weights, *overrides):
+    """The training config on 6 tiny procedural images, starting from `init_weights`, plus `overrides`."""
+    return compose("train", [f"out_dir={tmp_path}", f"datamodule.cache_root={tmp_path / 'cache'}",
+                             "model=uwnet_xfeat_student", "data.num_images=6", "data.height=64", "data.width=96",
+                             "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
+                             "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
+                             "trainer.enable_progress_bar=false", "~callbacks.progress_bar",
+                             f"init_weights={init_weights}", *overrides])
+
+
 def test_student_trains_through_the_composed_config(tmp_path):
     start = export_weights(XFeatStudent(vlad_codebook=str(PACKAGED_XFEAT_CODEBOOK)), tmp_path / "start.pt")
-    cfg = compose("train", [f"out_dir={tmp_path}", f"datamodule.cache_root={tmp_path / 'cache'}",
-                            "model=uwnet_xfeat_student", "data.num_images=6", "data.height=64", "data.width=96",
-                            "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
-                            "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
-                            "trainer.enable_progress_bar=false", "~callbacks.progress_bar",
-                            "+trainer.fast_dev_run=true", f"init_weights={start}", "model.net.frozen_batchnorm=true"])
+    cfg = _tiny_training(tmp_path, start, "+trainer.fast_dev_run=true", "model.net.frozen_batchnorm=true")
     assert train(cfg) is not None
     trained = load_uwnet(tmp_path / "uwnet.pt")
     assert isinstance(trained, XFeatStudent)
@@ -148,13 +153,8 @@ def test_unfrozen_batchnorm_updates_xfeat_statistics():
 
 def test_training_only_the_reliability_head_changes_nothing_else(tmp_path):
     start = export_weights(XFeatStudent(vlad_codebook=str(PACKAGED_XFEAT_CODEBOOK)), tmp_path / "start.pt")
-    cfg = compose("train", [f"out_dir={tmp_path}", f"datamodule.cache_root={tmp_path / 'cache'}",
-                            "model=uwnet_xfeat_student", "data.num_images=6", "data.height=64", "data.width=96",
-                            "datamodule.image_size=null", "datamodule.val_size=2", "datamodule.batch_size=2",
-                            "datamodule.num_workers=0", f"teacher.global_head.codebook={PACKAGED_XFEAT_CODEBOOK}",
-                            "trainer.enable_progress_bar=false", "~callbacks.progress_bar", "trainer.max_epochs=1",
-                            "model.reliability_weight=1.0", "model.trainable=[xfeat.heatmap_head.]",
-                            "model.optimizer.lr=0.01", f"init_weights={start}"])
+    cfg = _tiny_training(tmp_path, start, "trainer.max_epochs=1", "model.reliability_weight=1.0",
+                         "model.trainable=[xfeat.heatmap_head.]", "model.optimizer.lr=0.01")
     train(cfg)
     before = load_uwnet(start).state_dict()
     after = load_uwnet(tmp_path / "uwnet.pt").state_dict()
