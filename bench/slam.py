@@ -52,7 +52,8 @@ STAGES = {
     "  triangulate": [("slam/local_mapping.py", "_triangulate")],
     "  fuse": [("slam/local_mapping.py", "_fuse")],
     "  local BA": [("slam/local_mapping.py", "_local_bundle_adjustment")],
-    "    gtsam optimize": [("~", "<built-in method gtsam.gtsam.optimize>")],
+    "    solver": [("slam/bundle_adjustment.py", "_schur_levenberg_marquardt"),
+                   ("slam/bundle_adjustment.py", "_gtsam_levenberg_marquardt")],
     "  culling": [("slam/local_mapping.py", "_cull_points"), ("slam/local_mapping.py", "_cull_keyframes")],
     "loop closing (all)": [("slam/loop_closing.py", "process")],
 }

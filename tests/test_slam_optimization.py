@@ -2,11 +2,13 @@
 
 import gtsam
 import numpy as np
+import pytest
 from gtsam.symbol_shorthand import L, X
 
+from ruslam.slam.bundle_adjustment import _reduced_camera_system, bundle_adjustment
 from ruslam.slam.geometry import pose_matrix, project
 from ruslam.slam.map import inverse_pose
-from ruslam.slam.optimization import bundle_adjustment, optimize_pose, pose_graph_optimization, se3_exp
+from ruslam.slam.optimization import optimize_pose, pose_graph_optimization, se3_exp
 
 K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
 T_C0_C1 = pose_matrix(np.eye(3), [0.2, 0, 0])  # right camera 20 cm to the right
@@ -97,6 +99,52 @@ def test_stereo_bundle_adjustment_uses_right_camera():
     assert _rmse(P, pts, oi, oj, ouv, orr) < 0.8
     # metric scale is observable through the baseline: the last pose lands on the truth
     assert np.abs(P[4][:3, 3] - poses[4][:3, 3]).max() < 0.02
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_schur_solver_lands_where_gtsam_does(stereo):
+    """The numpy solver and gtsam minimise the same cost: same poses, points and outlier decisions, also with
+    gross outliers (dropped between the passes) and a depth-less point (held)."""
+    poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=stereo)
+    ouv = ouv.copy()
+    rng = np.random.default_rng(5)
+    wrong = np.zeros(len(ouv), bool)
+    wrong[rng.choice(len(ouv), len(ouv) // 20, replace=False)] = True
+    ouv[wrong] += rng.uniform(15, 40, (wrong.sum(), 2)) * rng.choice([-1, 1], (wrong.sum(), 2))
+    keep = ~((oj == 7) & (oi > 0))  # point 7 is seen by one pose: in mono no depth, so it must stay where it is
+    oi, oj, ouv, orr, wrong = oi[keep], oj[keep], ouv[keep], orr[keep], wrong[keep]
+    fixed = np.array([True, True, False, False, False])
+    args = (noisy, fixed, Xn, oi, oj, ouv, K) + ((orr, K, T_C0_C1) if stereo else ())
+    Pa, Xa, ia = bundle_adjustment(*args, iterations=(5, 10), solver="schur")
+    Pb, Xb, ib = bundle_adjustment(*args, iterations=(5, 10), solver="gtsam")
+    assert _rmse(noisy, Xn, oi, oj, ouv, orr) > 5.0  # a real problem to solve
+    assert np.abs(Pa - Pb).max() < 1e-4
+    assert np.median(np.abs(Xa - Xb)) < 1e-5 and np.abs(Xa - Xb).max() < 5e-3  # points 4-9 m away
+    assert np.array_equal(ia, ib) and not ia[wrong].any() and ia[~wrong].mean() > 0.97
+    assert np.array_equal(Xa[7], Xn[7]) != stereo  # a stereo pair gives it depth
+    assert np.array_equal(Pa[:2], noisy[:2])
+
+
+def test_reduced_camera_system_in_chunks_equals_one_chunk():
+    rng = np.random.default_rng(0)
+    M, nf, C = 40, 3, 100
+    point = np.sort(rng.integers(0, M, C))
+    slot = rng.integers(0, nf, C)
+    Hxc, gx = rng.normal(size=(C, 3, 6)), rng.normal(size=(M, 3))
+    A = rng.normal(size=(M, 3, 3))
+    Hxx_inv = A @ np.swapaxes(A, 1, 2) + np.eye(3)
+    S1, r1 = _reduced_camera_system(Hxc, point, slot, Hxx_inv, gx, nf)
+    S2, r2 = _reduced_camera_system(Hxc, point, slot, Hxx_inv, gx, nf, max_elements=18 * nf * 7)  # 7 points each
+    # the direct sum over observation pairs that share a point
+    S = np.zeros((6 * nf, 6 * nf))
+    r = np.zeros(6 * nf)
+    for a in range(C):
+        r[6 * slot[a]:6 * slot[a] + 6] += Hxc[a].T @ Hxx_inv[point[a]] @ gx[point[a]]
+        for b in range(C):
+            if point[a] == point[b]:
+                S[6 * slot[a]:6 * slot[a] + 6, 6 * slot[b]:6 * slot[b] + 6] += Hxc[a].T @ Hxx_inv[point[a]] @ Hxc[b]
+    for got_S, got_r in ((S1, r1), (S2, r2)):
+        assert np.allclose(got_S, S) and np.allclose(got_r, r)
 
 
 def test_sim3_pose_graph_closes_a_loop_with_scale_drift():

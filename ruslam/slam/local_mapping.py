@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ruslam.slam.atlas import Atlas
+from ruslam.slam.bundle_adjustment import bundle_adjustment
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
@@ -24,7 +25,6 @@ from ruslam.slam.geometry import (
     triangulation_mask,
 )
 from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform
-from ruslam.slam.optimization import bundle_adjustment
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ class MappingConfig:
     ba_keyframes: int = 7  # optimised keyframes (the new one and its best covisible neighbours)
     ba_fixed_keyframes: int = 5  # other keyframes seeing local points, held fixed
     ba_iterations: tuple[int, int] = (3, 4)  # LM iterations before / after dropping outlier observations
+    ba_solver: str = "schur"  # numpy Schur-complement LM; "gtsam" (slower, holds the GIL) for reference
     redundancy: float = 0.9  # cull a keyframe when this share of its points is seen by >= 3 others
     min_found_ratio: float = 0.25  # cull a new point matched in fewer than this share of frames that could see it
 
@@ -256,7 +257,8 @@ class LocalMapper:
         K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)
         poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), fixed,
                                             np.stack([p.position for p in points]), oi, oj, uv, kfs[0].K,
-                                            orr, K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma)
+                                            orr, K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma,
+                                            solver=self.cfg.ba_solver)
         for k, T, f in zip(kfs, poses, fixed, strict=True):
             if not f:
                 k.T_cw = T

@@ -1,13 +1,12 @@
-"""Optimisation as functions on arrays: motion-only pose, local bundle adjustment, SE3/Sim3 pose graph.
+"""Optimisation as functions on arrays: reprojection Jacobians, motion-only pose, SE3/Sim3 pose graph.
 
-Local BA and the pose graphs are solved by gtsam (Levenberg-Marquardt, Huber kernel on projections). Motion-only
-pose optimisation runs once or twice per frame on a 6-dof problem; in gtsam it costs ~25 ms per round for 400
-points (one Python call per factor plus a fixed-point variable each) against <1 ms as a vectorised Gauss-Newton in
-numpy, so it is written here with the same Huber kernel and ORB-SLAM's 4-round outlier classification; a test
-checks it against gtsam on the same problem.
+The pose graphs are solved by gtsam (Levenberg-Marquardt); bundle adjustment is `ruslam.slam.bundle_adjustment`.
+Motion-only pose optimisation runs once or twice per frame on a 6-dof problem; in gtsam it costs ~25 ms per round
+for 400 points (one Python call per factor plus a fixed-point variable each) against <1 ms as a vectorised
+Gauss-Newton in numpy, so it is written here with the same Huber kernel and ORB-SLAM's 4-round outlier
+classification; a test checks it against gtsam on the same problem.
 
 Conventions: poses in and out are 4x4 ``T_cw`` (world -> camera 0). gtsam variables are camera-to-world poses.
-A stereo observation of the right camera is a projection factor whose ``body_P_sensor`` is ``T_c0_c1``.
 Similarities are 4x4 ``[sR | t]`` acting as ``x -> s R x + t``; gtsam's Similarity3 acts as ``s (R x + t)``.
 """
 
@@ -16,7 +15,7 @@ from __future__ import annotations
 import cv2
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import X
 
 from ruslam.slam.geometry import CHI2_2DOF
 from ruslam.slam.map import inverse_pose, orthonormalize
@@ -61,26 +60,34 @@ def _cal(K: np.ndarray) -> gtsam.Cal3_S2:
 
 
 # --- motion-only pose optimisation (numpy) -----------------------------------------------------------------------
-def _residuals_jacobians(T_cw, X_w, uv, K, T_extra=None):
-    """Reprojection residuals [N, 2] and their Jacobians [N, 2, 6] w.r.t. a left twist on T_cw."""
-    Xc = X_w @ T_cw[:3, :3].T + T_cw[:3, 3]
-    A = np.broadcast_to(np.eye(3), (len(X_w), 3, 3))
-    Xs = Xc
-    if T_extra is not None:  # observation made by another camera of the rig: x_s = T_extra x_c
-        Xs = Xc @ T_extra[:3, :3].T + T_extra[:3, 3]
-        A = np.broadcast_to(T_extra[:3, :3], (len(X_w), 3, 3))
-    x, y, z = Xs[:, 0], Xs[:, 1], np.maximum(Xs[:, 2], 1e-6)
+def camera_projection(Xc: np.ndarray, K: np.ndarray, jacobians: bool = True):
+    """Pixels [N, 2] of camera points Xc [N, 3], their Jacobian w.r.t. Xc [N, 2, 3] (or None), and the depths."""
+    x, y, z = Xc[:, 0], Xc[:, 1], np.maximum(Xc[:, 2], 1e-6)
     fx, fy = K[0, 0], K[1, 1]
-    proj = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
-    Jp = np.zeros((len(X_w), 2, 3))
-    Jp[:, 0, 0], Jp[:, 0, 2] = fx / z, -fx * x / z**2
-    Jp[:, 1, 1], Jp[:, 1, 2] = fy / z, -fy * y / z**2
-    skew = np.zeros((len(X_w), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -Xc[:, 2], Xc[:, 1], -Xc[:, 0]
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = Xc[:, 2], -Xc[:, 1], Xc[:, 0]
-    dX = np.concatenate([-skew, np.broadcast_to(np.eye(3), skew.shape)], axis=2)  # d Xc / d twist
-    J = Jp @ A @ dX
-    return proj - uv, J, Xs[:, 2]
+    pix = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
+    if not jacobians:
+        return pix, None, Xc[:, 2]
+    J = np.zeros((len(Xc), 2, 3))
+    J[:, 0, 0], J[:, 0, 2] = fx / z, -fx * x / z**2
+    J[:, 1, 1], J[:, 1, 2] = fy / z, -fy * y / z**2
+    return pix, J, Xc[:, 2]
+
+
+def pose_jacobian(Xc: np.ndarray, J_cam: np.ndarray) -> np.ndarray:
+    """d pixel / d left twist on T_cw [N, 2, 6] from d pixel / d Xc: d Xc / d twist = [-[Xc]x | I], and
+    a^T [Xc]x = (a x Xc)^T."""
+    return np.concatenate([np.cross(Xc[:, None, :], J_cam), J_cam], axis=2)
+
+
+def reprojection(T_cw, X_w, uv, K, T_extra=None, jacobians: bool = True):
+    """Residuals [N, 2] of world points seen from one pose, their Jacobian w.r.t. a left twist on T_cw [N, 2, 6]
+    (or None) and the depths. `T_extra` maps camera-0 points into the observing camera of a rig."""
+    Xc = X_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+    Xs = Xc if T_extra is None else Xc @ T_extra[:3, :3].T + T_extra[:3, 3]
+    pix, J, z = camera_projection(Xs, K, jacobians)
+    if J is not None and T_extra is not None:
+        J = J @ T_extra[:3, :3]
+    return pix - uv, None if J is None else pose_jacobian(Xc, J), z
 
 
 def optimize_pose(
@@ -105,10 +112,10 @@ def optimize_pose(
     for r in range(rounds):
         robust = r < rounds - 1
         for _ in range(iterations):
-            res, J, z = _residuals_jacobians(T, X_w, uv, K)
+            res, J, z = reprojection(T, X_w, uv, K)
             terms = [(res, J, inlier & (z > 0))]
             if has_right.any():
-                rr, Jr, zr = _residuals_jacobians(T, X_w[has_right], uv_right[has_right], K_right, T_c1_c0)
+                rr, Jr, zr = reprojection(T, X_w[has_right], uv_right[has_right], K_right, T_c1_c0)
                 terms.append((rr, Jr, inlier[has_right] & (zr > 0)))
             H = np.zeros((6, 6))
             b = np.zeros(6)
@@ -124,101 +131,17 @@ def optimize_pose(
             T = se3_exp(step) @ T
             if np.linalg.norm(step) < 1e-7:
                 break
-        res, _, z = _residuals_jacobians(T, X_w, uv, K)
+        res, _, z = reprojection(T, X_w, uv, K, jacobians=False)
         e2 = np.sum(res**2, 1)
         if has_right.any():
-            rr, _, zr = _residuals_jacobians(T, X_w[has_right], uv_right[has_right], K_right, T_c1_c0)
+            rr, _, zr = reprojection(T, X_w[has_right], uv_right[has_right], K_right, T_c1_c0,
+                                            jacobians=False)
             e2[has_right] += np.sum(rr**2, 1)
         thresh = np.where(has_right, chi2 * 1.3, chi2)  # ORB-SLAM: 7.815 (3 dof) for stereo, 5.991 for mono
         inlier = (e2 < thresh) & (z > 0)
         if inlier.sum() < 3:
             break
     return orthonormalize(T), inlier
-
-
-# --- local bundle adjustment (gtsam) -----------------------------------------------------------------------------
-def bundle_adjustment(
-    poses: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray,
-    obs_uv: np.ndarray, K: np.ndarray, obs_right: np.ndarray | None = None, K_right: np.ndarray | None = None,
-    T_c0_c1: np.ndarray | None = None, iterations: tuple[int, int] = (5, 10), chi2: float = CHI2_2DOF,
-    sigma: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Huber-robust BA of keyframe poses T_cw [P, 4, 4] and points [M, 3] from observations [O] (gtsam LM).
-
-    `fixed` [P] marks poses held constant (the keyframes that see local points from outside the local window).
-    `obs_right` [O] marks observations made by the right camera of a stereo rig. As in ORB-SLAM: a first robust
-    pass, then observations with chi2 > 5.991 or behind the camera are dropped and the rest is refined again.
-    `sigma` is the keypoint noise in pixels. Returns (poses, points, inlier mask over observations).
-    """
-    chi2 = chi2 * sigma**2
-    cal, cal_r = _cal(K), _cal(K_right) if K_right is not None else None
-    body_r = _pose3(T_c0_c1) if T_c0_c1 is not None else None
-    obs_right = np.zeros(len(obs_pose), bool) if obs_right is None else obs_right
-    noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(HUBER_DELTA), gtsam.noiseModel.Isotropic.Sigma(2, sigma))
-    inlier = np.ones(len(obs_pose), bool)
-    values = gtsam.Values()
-    for i, T in enumerate(poses):
-        values.insert(X(i), _pose3(inverse_pose(T)))
-    for j, p in enumerate(points):
-        values.insert(L(j), np.asarray(p, float))
-    if not np.any(fixed):  # gauge: hold the first pose
-        fixed = fixed.copy()
-        fixed[0] = True
-    # Held poses/points get tight priors, not NonlinearEquality: gtsam eliminates constrained factors by QR, which
-    # made this function 3.4x slower (bench/bundle_adjustment.py). Held poses are returned as given.
-    hold6, hold3 = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
-    factors = [
-        gtsam.GenericProjectionFactorCal3_S2(obs_uv[o], noise, X(int(i)), L(int(j)), cal_r, body_r) if right
-        else gtsam.GenericProjectionFactorCal3_S2(obs_uv[o], noise, X(int(i)), L(int(j)), cal)
-        for o, (i, j, right) in enumerate(zip(obs_pose, obs_point, obs_right, strict=True))
-    ]
-    for stage, iters in enumerate(iterations):
-        graph = gtsam.NonlinearFactorGraph()
-        for i in np.nonzero(fixed)[0]:
-            graph.add(gtsam.PriorFactorPose3(X(int(i)), values.atPose3(X(int(i))), hold6))
-        for o in np.nonzero(inlier)[0]:
-            graph.add(factors[o])
-        counts = np.bincount(obs_point[inlier], minlength=len(points))
-        for j in np.nonzero(counts < 2)[0]:  # a point left with < 2 measurements has no depth: hold it
-            graph.add(gtsam.PriorFactorPoint3(L(int(j)), values.atPoint3(L(int(j))), hold3))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(iters)
-        values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        if stage < len(iterations) - 1:
-            inlier &= _observation_chi2(values, obs_pose, obs_point, obs_uv, obs_right, K, K_right, T_c0_c1) < chi2
-    out_poses = np.stack([inverse_pose(values.atPose3(X(i)).matrix()) for i in range(len(poses))])
-    out_poses[fixed] = poses[fixed]  # exactly as given (the priors let them move by ~1e-6)
-    out_points = np.stack([values.atPoint3(L(j)) for j in range(len(points))]) if len(points) else points
-    final = _observation_chi2(values, obs_pose, obs_point, obs_uv, obs_right, K, K_right, T_c0_c1) < chi2
-    return out_poses, out_points, final
-
-
-def _observation_chi2(values, obs_pose, obs_point, obs_uv, obs_right, K, K_right, T_c0_c1) -> np.ndarray:
-    """Squared reprojection error of each observation (inf when behind the camera)."""
-    n_pose = int(obs_pose.max()) + 1 if len(obs_pose) else 0
-    T_cw = np.stack([inverse_pose(values.atPose3(X(i)).matrix()) for i in range(n_pose)]) if n_pose else None
-    used = np.unique(obs_point)
-    positions = np.zeros((int(used.max()) + 1 if len(used) else 0, 3))
-    for j in used:
-        positions[j] = values.atPoint3(L(int(j)))
-    P = positions[obs_point]
-    out = np.full(len(obs_pose), np.inf)
-    if not len(obs_pose):
-        return out
-    T = T_cw[obs_pose]
-    Xc = np.einsum("nij,nj->ni", T[:, :3, :3], P) + T[:, :3, 3]
-    Kobs = np.broadcast_to(K, (len(P), 3, 3)).copy()
-    if obs_right.any():
-        T_c1_c0 = inverse_pose(T_c0_c1)
-        Xc[obs_right] = Xc[obs_right] @ T_c1_c0[:3, :3].T + T_c1_c0[:3, 3]
-        Kobs[obs_right] = K_right
-    z = Xc[:, 2]
-    ok = z > 1e-6
-    uv = np.stack([Kobs[:, 0, 0] * Xc[:, 0] / np.where(ok, z, 1) + Kobs[:, 0, 2],
-                   Kobs[:, 1, 1] * Xc[:, 1] / np.where(ok, z, 1) + Kobs[:, 1, 2]], 1)
-    out[ok] = np.sum((uv - obs_uv) ** 2, 1)[ok]
-    return out
 
 
 # --- pose graphs (gtsam) -----------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
 from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, scale_translation, transform
-from ruslam.slam.optimization import bundle_adjustment, optimize_pose
+from ruslam.slam.optimization import optimize_pose
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +205,8 @@ class Tracker:
             p.add_observation(kf1, int(a))
             p.add_observation(kf2, int(b))
             self.map.add_point(p)
-        self._global_bundle_adjustment([kf1, kf2])
+        self.mapper.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id),
+                                 (10, 10))
         seen = [p.position for p in kf1.points if p is not None]
         median = float(np.median(transform(kf1.T_cw, np.stack(seen))[:, 2])) if seen else 0.0
         if median <= 0 or sum(p is not None for p in kf2.points) < c.init_min_matches // 2:
@@ -222,26 +223,6 @@ class Tracker:
         self._start(frame, kf2, [kf1, kf2])
         self.initial_frame = kf1
         return True
-
-    def _global_bundle_adjustment(self, kfs: list[KeyFrame]) -> None:
-        points = sorted({p for k in kfs for p in k.points if p is not None}, key=lambda p: p.id)
-        pidx = {p: j for j, p in enumerate(points)}
-        obs = [(i, pidx[p], k.keypoints[j]) for i, k in enumerate(kfs) for j, p in enumerate(k.points) if p]
-        oi, oj = np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
-        poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), np.eye(len(kfs), dtype=bool)[0],
-                                            np.stack([p.position for p in points]), oi, oj,
-                                            np.stack([o[2] for o in obs]), kfs[0].K, iterations=(10, 10),
-                                            sigma=self.sigma)
-        for k, T in zip(kfs, poses, strict=True):
-            k.T_cw = T
-        for p, x in zip(points, pts, strict=True):
-            p.position = x
-        for o in np.nonzero(~inl)[0]:
-            k, p = kfs[oi[o]], points[oj[o]]
-            if k in p.observations:
-                k.points[p.observations.pop(k)] = None
-                if len(p.observations) < 2:
-                    self.map.remove_point(p)
 
     def _reset(self) -> None:
         for kf in list(self.map.keyframes):
