@@ -77,6 +77,9 @@ class LocalMapper:
     def finish(self) -> None:
         """Wait for queued work (nothing to wait for in synchronous mode)."""
 
+    def catch_up(self, backlog: int) -> None:
+        """Wait until at most `backlog` keyframes are queued or being mapped (nothing to wait for inline)."""
+
     # --- one keyframe ------------------------------------------------------------------------------------------
     def process(self, kf: KeyFrame) -> None:
         with self.atlas.lock:
@@ -86,10 +89,15 @@ class LocalMapper:
             self._cull_points(kf)
             self._triangulate(kf)
             self._fuse(kf)
-            if len(self.map.keyframes) > 2:
-                self._local_bundle_adjustment(kf)
+            problem = self._local_ba_problem(kf) if len(self.map.keyframes) > 2 else None
+        if problem is not None:
+            # solved outside the lock (numpy releases the GIL): a threaded tracker goes on meanwhile; what it changes
+            # (new keyframes, counters) is not in the problem, and the write-back re-checks every observation
+            solution = self._solve(problem, self.cfg.ba_iterations)
+            with self.atlas.lock:
+                self._write_back(problem, solution)
                 self._cull_keyframes(kf)
-            self.processed += 1
+        self.processed += 1
         if self.loop_closer is not None:
             self.loop_closer.process(kf)
 
@@ -153,11 +161,14 @@ class LocalMapper:
             # single-scale keypoints: the two viewing distances must be alike (ORB-SLAM's scale check, one octave)
             ratio = np.linalg.norm(X - n.center, axis=1) / np.maximum(np.linalg.norm(X - kf.center, axis=1), 1e-9)
             ok &= (ratio < c.max_distance_ratio) & (ratio > 1.0 / c.max_distance_ratio)
-            for ia, ib, x in zip(a[ok], b[ok], X[ok], strict=True):
+            rays = [X[ok] - c for c in (kf.center, n.center)]
+            normals = sum(r / np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12) for r in rays)
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+            for ia, ib, x, normal in zip(a[ok], b[ok], X[ok], normals, strict=True):
                 p = MapPoint(x, kf.descriptors[ia], kf)
                 p.add_observation(kf, int(ia))
                 p.add_observation(n, int(ib))
-                p.update_normal()
+                p.set_normal(normal)
                 self.map.add_point(p)
                 self.recent.append(p)
                 free1[ia] = False
@@ -214,7 +225,7 @@ class LocalMapper:
         return fused
 
     # --- bundle adjustment -------------------------------------------------------------------------------------
-    def _local_bundle_adjustment(self, kf: KeyFrame) -> None:
+    def _local_ba_problem(self, kf: KeyFrame) -> dict | None:
         c = self.cfg
         local = [kf, *self.map.neighbours(kf, c.ba_keyframes - 1)]
         points = sorted({p for k in local for p in alive_points(k)}, key=lambda p: p.id)
@@ -230,19 +241,25 @@ class LocalMapper:
             local.remove(first)
             fixed.insert(0, first)
         kfs = local + fixed
-        self.bundle_adjust(kfs, np.arange(len(kfs)) >= len(local), points, c.ba_iterations)
+        return self._ba_problem(kfs, np.arange(len(kfs)) >= len(local), points)
 
     def bundle_adjust(self, kfs: list[KeyFrame], fixed: np.ndarray, points: list[MapPoint], iterations) -> None:
-        """Run gtsam BA over keyframes/points and write back poses, positions, and dropped outlier observations."""
+        """BA over keyframes/points; writes back poses, positions, and drops outlier observations."""
+        problem = self._ba_problem(kfs, fixed, points)
+        if problem is not None:
+            self._write_back(problem, self._solve(problem, iterations))
+
+    def _ba_problem(self, kfs: list[KeyFrame], fixed: np.ndarray, points: list[MapPoint]) -> dict | None:
+        """The arrays of a BA (`ruslam.slam.bundle_adjustment`) and the objects to write the result back to."""
         if not points or len(kfs) < 2:
-            return
+            return None
         kidx = {k: i for i, k in enumerate(kfs)}
         # a point seen once (without a stereo measurement) has no depth: leave it out, it would stall LM
         points = [p for p in points if sum(k in kidx for k in p.observations) >= 2
                   or (self.rig is not None and any(k in kidx and np.isfinite(k.right[i, 0])
                                                    for k, i in p.observations.items() if k.right is not None))]
         if not points:
-            return
+            return None
         rows = []
         for j, p in enumerate(points):
             for k, i in p.observations.items():
@@ -251,15 +268,24 @@ class LocalMapper:
                     if self.rig is not None and k.right is not None and np.isfinite(k.right[i, 0]):
                         rows.append((kidx[k], j, i, True))
         if not rows:
-            return
+            return None
         oi, oj, ok, orr = (np.array(col) for col in zip(*rows, strict=True))
         uv = np.stack([(kfs[a].right if r else kfs[a].keypoints)[b] for a, b, r in zip(oi, ok, orr, strict=True)])
+        return {"kfs": kfs, "points": points, "fixed": np.asarray(fixed, bool), "oi": oi, "oj": oj, "uv": uv,
+                "right": orr, "poses": np.stack([k.T_cw for k in kfs]),
+                "positions": np.stack([p.position for p in points])}
+
+    def _solve(self, problem: dict, iterations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)
-        poses, pts, inl = bundle_adjustment(np.stack([k.T_cw for k in kfs]), fixed,
-                                            np.stack([p.position for p in points]), oi, oj, uv, kfs[0].K,
-                                            orr, K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma,
-                                            solver=self.cfg.ba_solver)
-        for k, T, f in zip(kfs, poses, fixed, strict=True):
+        q = problem
+        return bundle_adjustment(q["poses"], q["fixed"], q["positions"], q["oi"], q["oj"], q["uv"], q["kfs"][0].K,
+                                 q["right"], K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma,
+                                 solver=self.cfg.ba_solver)
+
+    def _write_back(self, problem: dict, solution) -> None:
+        poses, pts, inl = solution
+        kfs, points, oi, oj = problem["kfs"], problem["points"], problem["oi"], problem["oj"]
+        for k, T, f in zip(kfs, poses, problem["fixed"], strict=True):
             if not f:
                 k.T_cw = T
         for p, x in zip(points, pts, strict=True):
@@ -269,7 +295,7 @@ class LocalMapper:
             if k in p.observations:
                 k.points[p.observations.pop(k)] = None
                 if len(p.observations) < 2:
-                    self.map.remove_point(p)
+                    k.map.resolved().remove_point(p)  # the problem's map (tracking may have started a new one)
 
     # --- keyframe culling --------------------------------------------------------------------------------------
     def _cull_keyframes(self, kf: KeyFrame) -> None:
@@ -287,32 +313,44 @@ class LocalMapper:
 
 
 class ThreadedLocalMapper(LocalMapper):
-    """The same mapper run by a worker thread: `insert_keyframe` queues, the thread calls `process`."""
+    """The same mapper run by a worker thread: `insert_keyframe` queues, the thread calls `process`.
+
+    The tracker runs on while a keyframe is mapped (the BA solve holds no lock), and calls `catch_up` between
+    frames: a tracker far ahead of its mapper tracks against a map without the newest points and gets lost.
+    """
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.queue: queue.Queue[KeyFrame | None] = queue.Queue()
-        self.busy = False
+        self.pending = 0  # keyframes queued or being mapped
+        self.done = threading.Condition()
         self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._run, name="local-mapping", daemon=True)
         self.thread.start()
 
     def insert_keyframe(self, kf: KeyFrame) -> None:
+        with self.done:
+            self.pending += 1
         self.queue.put(kf)
 
     def idle(self) -> bool:
-        return self.queue.empty() and not self.busy
+        return self.pending == 0
+
+    def catch_up(self, backlog: int) -> None:
+        with self.done:
+            self.done.wait_for(lambda: self.pending <= backlog or not self.thread.is_alive())
 
     def _run(self) -> None:
         while (kf := self.queue.get()) is not None:
-            self.busy = True
             try:
                 self.process(kf)
             except Exception as err:  # noqa: BLE001 (reported by finish(), never lost in the thread)
                 log.exception("Local mapping failed on %s.", kf)
                 self.error = err
             finally:
-                self.busy = False
+                with self.done:
+                    self.pending -= 1
+                    self.done.notify_all()
 
     def finish(self) -> None:
         self.queue.put(None)

@@ -177,6 +177,11 @@ class MapPoint:
         n = d.sum(0)
         self.normal = n / max(float(np.sqrt(n @ n)), 1e-12)
 
+    def set_normal(self, normal: np.ndarray) -> None:
+        """A normal computed elsewhere (all new points of a triangulation at once) for the current observers."""
+        self.normal = normal
+        self._normal_key = tuple(kf.id for kf in self.observations)
+
     def update_descriptor(self, binary: bool) -> None:
         """The observation descriptor with the least median distance to the others (ORB-SLAM's choice)."""
         key = tuple((kf.id, i) for kf, i in self.observations.items())

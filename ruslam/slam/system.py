@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 class SLAMConfig:
     sensor: str = "auto"  # "mono", "stereo", or "auto" (stereo when the sequence has two cameras)
     synchronous: bool = True
+    mapping_backlog: int = 1  # threaded mode: keyframes queued or being mapped before the tracker waits for them
     seed: int = 0
     progress: bool = True
     max_frames: int | None = None
@@ -166,6 +167,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                     kf1, tracker.initial_frame = tracker.initial_frame, None
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
+            mapper.catch_up(cfg.mapping_backlog)
             timings[i] = time.perf_counter() - start
     finally:
         mapper.finish()
