@@ -122,9 +122,9 @@ def optimize_pose(
             for e, Je, use in terms:
                 err = np.linalg.norm(e, axis=1)
                 w = np.where(err <= delta, 1.0, delta / np.maximum(err, 1e-12)) if robust else 1.0
-                w = w * use
-                H += np.einsum("n,nki,nkj->ij", w, Je, Je)
-                b += np.einsum("n,nki,nk->i", w, Je, e)
+                wJ = (w * use)[:, None, None] * Je
+                H += wJ.reshape(-1, 6).T @ Je.reshape(-1, 6)
+                b += wJ.reshape(-1, 6).T @ e.ravel()
             if np.linalg.matrix_rank(H) < 6:
                 return T_cw.copy(), np.zeros(n, bool)
             step = -np.linalg.solve(H + 1e-6 * np.eye(6), b)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from ruslam.slam.atlas import Atlas
@@ -34,6 +35,8 @@ class SLAMConfig:
     sensor: str = "auto"  # "mono", "stereo", or "auto" (stereo when the sequence has two cameras)
     synchronous: bool = True
     mapping_backlog: int = 1  # threaded mode: keyframes queued or being mapped before the tracker waits for them
+    blas_threads: int | None = 1  # numpy/scipy/OpenCV BLAS threads during the run (None: leave as is); the SLAM's
+    # matrices are small, and OpenBLAS threads that spin for a busy core made a run 2.5x slower (BENCHMARKS.md)
     seed: int = 0
     progress: bool = True
     max_frames: int | None = None
@@ -155,6 +158,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     timings = np.zeros(n)
     skipped = 0
     initialized_at = None
+    blas = threadpool_limits(cfg.blas_threads, user_api="blas")  # torch's own thread pool is not BLAS here
     try:
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
             start = time.perf_counter()
@@ -171,6 +175,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
             timings[i] = time.perf_counter() - start
     finally:
         mapper.finish()
+        blas.restore_original_limits()
     records, poses, map_frames = atlas.trajectory()
     if not records:
         log.warning("SLAM on %s: no frame was tracked (initialisation never succeeded on %d frames, %d skipped).",
