@@ -1,5 +1,6 @@
 """Local mapping (paper 3.1): keyframe insertion, covisibility update, point culling, new points by triangulation
-with neighbours, fusion of duplicates, local bundle adjustment (gtsam, Huber) and redundant-keyframe culling.
+with neighbours, fusion of duplicates, local bundle adjustment (`bundle_adjustment.py`, Huber) and
+redundant-keyframe culling.
 
 `LocalMapper` is synchronous: `insert_keyframe` processes the keyframe at once (then hands it to loop closing).
 `ThreadedLocalMapper` is the thin thread layer: the same `process` run from a queue in a worker thread.
