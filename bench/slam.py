@@ -4,6 +4,7 @@
     nice .venv/bin/python bench/slam.py --variant dev:turn9 --profile     # a robustness-matrix variant, per stage
     nice .venv/bin/python bench/slam.py --variant test:base --laps 16 --frames 2000 --extractors orb   # memory
     nice .venv/bin/python bench/slam.py --modes sync threaded     # both modes, one after the other per extractor
+    nice .venv/bin/python bench/slam.py --ba-solvers gtsam schur  # the two bundle-adjustment solvers
 
 For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
 SLAM figure is frames / wall time of the whole run (extraction, tracking, mapping and loop closing; in threaded mode
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import itertools
 import logging
 import os
 import pstats
@@ -39,6 +41,8 @@ import torch
 from ruslam import load_extractor
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import SLAMConfig, run
+from ruslam.slam.bundle_adjustment import SOLVERS
+from ruslam.slam.local_mapping import MappingConfig
 from ruslam.slam.loop_closing import LoopConfig
 from ruslam.slam.readers import Trajectory
 from ruslam.slam.synthetic_sequence import synthetic_sequence
@@ -134,6 +138,8 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true", help="time per SLAM stage (cProfile)")
     parser.add_argument("--modes", nargs="+", default=["sync"], choices=["sync", "threaded"],
                         help="synchronous (inline mapping) and/or threaded (mapping in its own thread)")
+    parser.add_argument("--ba-solvers", nargs="+", default=["gtsam"], choices=list(SOLVERS),
+                        help="mapping.ba_solver values to run (ruslam.slam.bundle_adjustment)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING)
@@ -143,7 +149,7 @@ def main() -> None:
     gt = Trajectory(seq.groundtruth.timestamps[:n], seq.groundtruth.poses[:n])
     print(f"sequence {seq.name}: {n} frames {seq.cameras[0].width}x{seq.cameras[0].height}, "
           f"{'stereo' if args.stereo else 'mono'}, path {gt.path_length():.2f} m, torch threads {args.threads}")
-    print(f"{'extractor':10s} {'extract fps':>11s} {'SLAM fps':>9s} {'ratio':>6s} {'tracked':>8s} {'kfs':>4s} "
+    print(f"{'extractor':16s} {'extract fps':>11s} {'SLAM fps':>9s} {'ratio':>6s} {'tracked':>8s} {'kfs':>4s} "
           f"{'loops':>5s} {'APE m':>7s} {'APE %path':>9s}")
     for name in args.extractors:
         extractor = load_extractor(name, **({} if args.max_keypoints is None else
@@ -154,8 +160,9 @@ def main() -> None:
             for image in frame:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
-        for mode in args.modes:
+        for mode, solver in itertools.product(args.modes, args.ba_solvers):
             cfg = SLAMConfig(progress=False, synchronous=mode == "sync", max_frames=n,
+                             mapping=MappingConfig(ba_solver=solver),
                              loop=LoopConfig(enabled=not args.no_loop, global_bundle_adjustment=args.global_ba))
             profiler = cProfile.Profile() if args.profile else None
             if profiler:
@@ -174,14 +181,14 @@ def main() -> None:
                 errors = evaluate_trajectory(Trajectory(result.timestamps, result.poses), gt,
                                              "se3" if args.stereo else "sim3")
                 ape = errors.ape_rmse
-            label = name if len(args.modes) == 1 else f"{name}/{mode}"
-            print(f"{label:10s} {extract_fps:11.1f} {slam_fps:9.1f} {slam_fps / extract_fps:6.2f} "
+            label = "/".join([name] + [mode] * (len(args.modes) > 1) + [solver] * (len(args.ba_solvers) > 1))
+            print(f"{label:16s} {extract_fps:11.1f} {slam_fps:9.1f} {slam_fps / extract_fps:6.2f} "
                   f"{result.tracked_ratio:8.1%} {result.num_keyframes:4d} {len(result.loops):5d} {ape:7.4f} "
                   f"{100 * ape / gt.path_length():9.2f}")
             per_frame = np.sort(result.timings)
-            print(f"{'':10s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
+            print(f"{'':16s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
                   f"{1e3 * per_frame[int(0.9 * (n - 1))]:.0f}, max {1e3 * per_frame[-1]:.0f}")
-            print(f"{'':10s} {memory_line(memory, result.timings)}; final map {result.num_keyframes} keyframes, "
+            print(f"{'':16s} {memory_line(memory, result.timings)}; final map {result.num_keyframes} keyframes, "
                   f"{result.num_points} points")
             if profiler:
                 print(stage_table(pstats.Stats(profiler), n, wall))

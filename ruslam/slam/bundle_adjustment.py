@@ -131,7 +131,8 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
         gx = np.where(movable[:, None], _sum_blocks(np.sum(wJx * res[:, :, None], 1), oj, M), 0.0)
         Hxc = _outer(wJx[cx], Jc[cx])  # [C, 3, 6]
         while True:
-            Hxx_d = Hxx + (lam + 1e-9) * np.eye(3)
+            # + 1e-9 of the trace: a point seen along parallel rays has no depth information (singular block)
+            Hxx_d = Hxx + (lam + 1e-9 * (1.0 + np.trace(Hxx, axis1=1, axis2=2)))[:, None, None] * np.eye(3)
             Hxx_d[~movable] = np.eye(3)
             Hxx_inv = np.linalg.inv(Hxx_d)
             dc = np.zeros((nf, 6))
@@ -140,7 +141,7 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
                 S = -S
                 for k in range(nf):
                     S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hcc[k] + lam * np.eye(6)
-                S[np.diag_indices(6 * nf)] += 1e-9
+                S[np.diag_indices(6 * nf)] += 1e-9 * (1.0 + np.trace(S) / (6 * nf))
                 try:
                     dc = np.linalg.solve(S, rhs - gc.ravel()).reshape(nf, 6)
                 except np.linalg.LinAlgError:
