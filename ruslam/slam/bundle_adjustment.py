@@ -3,14 +3,15 @@
 Two solvers of the same problem (Huber kernel on projections, held keyframes, ORB-SLAM's two passes with the
 chi2 > 5.991 observations dropped in between):
 
-- ``schur`` (default): Levenberg-Marquardt in numpy on the reduced camera system (the points eliminated by the
-  Schur complement, the 3x3 point blocks inverted all at once). Every step is a vectorised array operation, so a
-  local BA of ~15k observations takes tens of ms and numpy releases the GIL while it runs (the threaded mapper
-  overlaps tracking). It follows gtsam's LM schedule (lambda * I from 1e-5, x10 / 10, relative and absolute
-  tolerances 1e-5): with Marquardt's lambda * diag(H) instead, the same cost minima differed enough that XFeat
-  drifted on DEV `lowtex` (0.2 % -> 2.3-3.8 % of the path, BENCHMARKS.md).
-- ``gtsam``: the same graph in gtsam (one Python call per factor to build it, the GIL held while it solves); the
-  reference the tests hold the numpy solver to, and what the SLAM used before (``mapping.ba_solver: gtsam``).
+- ``gtsam`` (default, ``mapping.ba_solver``): the graph in gtsam's Levenberg-Marquardt; one Python call per factor
+  to build it, and the GIL held while it solves.
+- ``schur``: Levenberg-Marquardt in numpy on the reduced camera system (the points eliminated by the Schur
+  complement, the 3x3 point blocks inverted all at once), with gtsam's schedule (lambda * I from 1e-5, x10 / 10,
+  tolerances 1e-5). Every step is a vectorised array operation: ~5x faster than gtsam on a local BA of 15k
+  observations, and numpy releases the GIL while it runs (a threaded mapper overlaps tracking). Its first version
+  reached gtsam's costs (median ratio 1.000 over a DEV run's local BAs), but the small differences change which grid
+  variants drift (BENCHMARKS.md), so it is not the default yet (with Marquardt's lambda * diag(H), XFeat drifted
+  on DEV `lowtex`: 0.2 % -> 2.3-3.8 % of the path).
 
 Poses in and out are 4x4 ``T_cw``; held poses come back exactly as given.
 """
@@ -32,7 +33,7 @@ def bundle_adjustment(
     poses: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray,
     obs_uv: np.ndarray, K: np.ndarray, obs_right: np.ndarray | None = None, K_right: np.ndarray | None = None,
     T_c0_c1: np.ndarray | None = None, iterations: tuple[int, int] = (5, 10), chi2: float = CHI2_2DOF,
-    sigma: float = 1.0, solver: str = "schur",
+    sigma: float = 1.0, solver: str = "gtsam",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Huber-robust BA of keyframe poses T_cw [P, 4, 4] and points [M, 3] from observations [O].
 
