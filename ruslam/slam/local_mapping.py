@@ -92,8 +92,8 @@ class LocalMapper:
             self._fuse(kf)
             problem = self._local_ba_problem(kf) if len(self.map.keyframes) > 2 else None
         if problem is not None:
-            # solved outside the lock (numpy releases the GIL): a threaded tracker goes on meanwhile; what it changes
-            # (new keyframes, counters) is not in the problem, and the write-back re-checks every observation
+            # solved outside the lock: a threaded tracker goes on meanwhile (with the numpy solver, which releases the
+            # GIL); what it changes (new keyframes, counters) is not in the problem, and the write-back re-checks
             solution = self._solve(problem, self.cfg.ba_iterations)
             with self.atlas.lock:
                 self._write_back(problem, solution)
