@@ -125,6 +125,14 @@ def test_schur_solver_lands_where_gtsam_does(stereo):
     assert np.array_equal(Pa[:2], noisy[:2])
 
 
+def test_unknown_ba_solver_is_refused_when_the_config_is_built():
+    from ruslam.slam.local_mapping import MappingConfig
+
+    with pytest.raises(ValueError, match="mapping.ba_solver must be one of"):
+        MappingConfig(ba_solver="ceres")
+    assert MappingConfig(ba_solver="schur").ba_solver == "schur"
+
+
 def test_reduced_camera_system_in_chunks_equals_one_chunk():
     rng = np.random.default_rng(0)
     M, nf, C = 40, 3, 100

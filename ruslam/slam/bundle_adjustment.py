@@ -152,10 +152,11 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
             T_new = T.copy()
             for i in np.nonzero(~fixed)[0]:
                 T_new[i] = se3_exp(dc[slot[i]]) @ T[i]
-            new_cost, *terms = cost_and_terms(T_new, Xw + dx)
+            X_new = Xw + dx
+            new_cost, *terms = cost_and_terms(T_new, X_new)
             if new_cost <= cost:
                 improvement = cost - new_cost
-                T, Xw, cost = T_new, Xw + dx, new_cost
+                T, Xw, cost = T_new, X_new, new_cost
                 res, Jc, Jx, w = terms
                 lam /= 10
                 break

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ruslam.slam.atlas import Atlas
-from ruslam.slam.bundle_adjustment import bundle_adjustment
+from ruslam.slam.bundle_adjustment import SOLVERS, bundle_adjustment
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
@@ -49,6 +49,10 @@ class MappingConfig:
     ba_solver: str = "gtsam"  # or "schur": numpy, ~5x faster, GIL released; it changes which grid variants drift
     redundancy: float = 0.9  # cull a keyframe when this share of its points is seen by >= 3 others
     min_found_ratio: float = 0.25  # cull a new point matched in fewer than this share of frames that could see it
+
+    def __post_init__(self):
+        if self.ba_solver not in SOLVERS:  # here, not at the first local BA after initialisation
+            raise ValueError(f"mapping.ba_solver must be one of {SOLVERS}, got {self.ba_solver!r}.")
 
 
 def alive_points(kf: KeyFrame) -> list[MapPoint]:
