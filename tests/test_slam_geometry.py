@@ -5,6 +5,8 @@ import pytest
 
 from ruslam.slam.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
+    epipolar_mask,
+    fundamental_from_poses,
     pose_matrix,
     project,
     sim3_ransac,
@@ -37,6 +39,21 @@ def test_triangulation_recovers_points():
     # a point behind the second camera is rejected
     bad = triangulation_mask(np.array([[0.0, 0, -5]]), K, T1, x1[:1], K, T2, x2[:1])
     assert not bad.any()
+
+
+def test_epipolar_mask_is_a_band_of_the_given_width_around_the_line():
+    X = cloud(40, seed=3)
+    T2 = se3_exp(np.array([0.03, 0.02, -0.01, -0.5, 0.1, 0.05]))
+    x1, _ = project(K, np.eye(4), X)
+    x2, _ = project(K, T2, X)
+    F = fundamental_from_poses(K, K, T2)
+    assert np.all(np.diag(epipolar_mask(F, x1, x2, 1e-6)))  # each true match lies on its line
+    # the same match moved 3 px across its epipolar line: inside a 4 px band, outside a 2 px one
+    line = np.c_[x1, np.ones(len(x1))] @ F.T
+    normal = line[:, :2] / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+    moved = x2 + 3.0 * normal
+    assert np.all(np.diag(epipolar_mask(F, x1, moved, 4.0)))
+    assert not np.any(np.diag(epipolar_mask(F, x1, moved, 2.0)))
 
 
 def test_pnp_recovers_pose_with_outliers():
@@ -137,6 +154,41 @@ def test_matching_binary_and_float():
     assert np.allclose(d, np.linalg.norm(f[:, None] - g[None], axis=2), atol=1e-4)
     i1, i2 = match_knn_ratio(f, g, binary=False, max_distance=0.5)
     assert len(i1) == 60 and np.all(i1 == i2)
+
+
+def _dense_masked_knn(d, mask, max_distance, ratio):
+    """Reference: the 2-NN ratio test and mutual check on the full distance matrix with masked pairs at inf."""
+    d = np.where(mask, d, np.inf)
+    rows = np.arange(len(d))
+    best = np.argmin(d, axis=1)
+    d1 = d[rows, best]
+    keep = (d1 <= max_distance) & (np.argmin(d, axis=0)[best] == rows)
+    d[rows, best] = np.inf
+    keep &= d1 < ratio * d.min(axis=1)
+    return np.nonzero(keep)[0], best[keep]
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_masked_matching_equals_the_dense_search(binary):
+    """The sparse pair search (triangulation's epipolar band) returns what the dense masked matrix gives, ties
+    included (few-bit binary descriptors tie often)."""
+    rng = np.random.default_rng(11)
+    for case in range(40):
+        n1, n2 = rng.integers(1, 60, 2)
+        if binary:
+            a = rng.integers(0, 4, (n1, 2), dtype=np.uint8)
+            b = rng.integers(0, 4, (n2, 2), dtype=np.uint8)
+            max_distance = 3
+        else:
+            a = rng.normal(size=(n1, 8)).astype(np.float32)
+            b = rng.normal(size=(n2, 8)).astype(np.float32)
+            max_distance = 3.0
+        mask = rng.random((n1, n2)) < rng.choice([0.05, 0.3, 1.0])
+        d = descriptor_distances(a, b, binary)
+        e1, e2 = _dense_masked_knn(d, mask, max_distance, 0.8)
+        i1, i2 = match_knn_ratio(a, b, binary, max_distance, 0.8, mask=mask)
+        assert np.array_equal(i1, e1) and np.array_equal(i2, e2), case
+        assert np.all(mask[i1, i2])
 
 
 def test_window_search_respects_radius_and_uniqueness():

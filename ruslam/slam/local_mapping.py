@@ -20,7 +20,7 @@ from ruslam.slam.bundle_adjustment import SOLVERS, bundle_adjustment
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
-    epipolar_distance,
+    epipolar_mask,
     fundamental_from_poses,
     triangulate,
     triangulation_mask,
@@ -156,7 +156,7 @@ class LocalMapper:
             if len(i1) == 0 or len(i2) == 0:
                 continue
             F = fundamental_from_poses(K, n.K, n.T_cw @ inverse_pose(kf.T_cw))
-            mask = epipolar_distance(F, kf.keypoints[i1], n.keypoints[i2]) < c.epipolar_px
+            mask = epipolar_mask(F, kf.keypoints[i1], n.keypoints[i2], c.epipolar_px)
             a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance, c.ratio,
                                    mutual=True, mask=mask)
             a, b = i1[a], i2[b]

@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.conditioning import ImageConditioning
 from ruslam.slam.feature_matching import match_knn_ratio
-from ruslam.slam.geometry import epipolar_distance, fundamental_from_poses, project, triangulate
+from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, project, triangulate
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, inverse_pose
@@ -122,7 +122,7 @@ def make_frame(index, timestamp, images, extractor, sequence, stereo: bool, cfg:
         if len(kps_r) == 0:
             return frame
         T_c1_c0 = inverse_pose(np.asarray(sequence.T_cam0_cam1, np.float64))
-        mask = epipolar_distance(fundamental_from_poses(cam0.K, cam1.K, T_c1_c0), kps, kps_r) < cfg.stereo_epipolar_px
+        mask = epipolar_mask(fundamental_from_poses(cam0.K, cam1.K, T_c1_c0), kps, kps_r, cfg.stereo_epipolar_px)
         t = cfg.tracking
         a, b = match_knn_ratio(out["descriptors"], out_r["descriptors"], extractor.binary,
                                t.max_distance_binary if extractor.binary else t.max_distance_float, t.ratio,
