@@ -145,6 +145,7 @@ def test_matching_binary_and_float():
     b[:, 0] ^= 1  # one flipped bit
     d = descriptor_distances(a, b, binary=True)
     assert d[0, 49] == 1 and d.min() == 1
+    assert np.array_equal(descriptor_distances(a[:10], b[:10], binary=True), d[:10, :10])  # the small-set path
     i1, i2 = match_knn_ratio(a, b, binary=True, max_distance=10)
     assert len(i1) == 50 and np.all(i2 == 49 - i1)
     f = rng.normal(size=(60, 64)).astype(np.float32)
