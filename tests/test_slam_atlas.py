@@ -86,8 +86,7 @@ def test_merge_moves_the_active_map_by_sim3_and_records_follow():
     atlas, old, new, old_pts, new_pts = _two_maps(rng, D)
     # a frame tracked in the active map before the merge, recorded against new[1]; its true pose is x = 0.8
     atlas.record(99, 99.0, new[1], _rigid(T_true(0.8) @ inverse_pose(D)))
-    lc = LoopCloser(atlas, None, LoopConfig(), binary=False, stereo=False)
-    lc.mapper = LocalMapper(atlas, MappingConfig(), binary=False, loop_closer=lc)
+    lc = LoopCloser(atlas, LocalMapper(atlas, MappingConfig(), binary=False), LoopConfig(), binary=False, stereo=False)
     # a culled keyframe of the active map: its pose must follow its parent through the merge's scale change
     atlas.active.remove_keyframe(new[2])
     assert new[2].is_bad
@@ -111,7 +110,6 @@ def test_no_merge_without_a_geometric_link():
     atlas, old, new, _, _ = _two_maps(rng, np.eye(4))
     for k in new:  # the active map sees other landmarks: descriptors no longer match the old map's
         k.descriptors = rng.normal(size=k.descriptors.shape).astype(np.float32)
-    lc = LoopCloser(atlas, None, LoopConfig(), binary=False, stereo=False)
-    lc.mapper = LocalMapper(atlas, MappingConfig(), binary=False, loop_closer=lc)
+    lc = LoopCloser(atlas, LocalMapper(atlas, MappingConfig(), binary=False), LoopConfig(), binary=False, stereo=False)
     lc.process(new[1])
     assert lc.merges == [] and len(atlas.maps) == 2

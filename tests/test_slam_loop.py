@@ -133,9 +133,9 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     # the current (second-pass) keyframes live in a drifted map: similarity D (scale 1.08, 4 deg, 0.25 m)
     D = pose_matrix(se3_exp(np.array([0, 0, np.deg2rad(4), 0, 0, 0]))[:3, :3], [0.25, -0.1, 0.05], s=1.08)
     m = Map()
-    lc = LoopCloser(Atlas(m), None, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
-    mapper = LocalMapper(lc.atlas, MappingConfig(), binary=False, loop_closer=lc)
-    lc.mapper = mapper
+    atlas = Atlas(m)
+    mapper = LocalMapper(atlas, MappingConfig(), binary=False)
+    lc = LoopCloser(atlas, mapper, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
     placeholder = keyframe(np.ones(8))  # points need a creator; the real one is set below
     old_pts = [MapPoint(x, d, placeholder) for x, d in zip(landmarks, desc, strict=True)]
     new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, placeholder) for x, d in zip(landmarks, desc, strict=True)]

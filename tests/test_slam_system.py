@@ -131,17 +131,20 @@ def test_a_keyframe_moved_by_inline_mapping_gives_its_frame_the_new_pose(monkeyp
 
     shift = np.eye(4)
     shift[:3, 3] = [0.5, 0.0, 0.0]
-    original = LocalMapper.insert_keyframe
+    original = LocalMapper.process
+    processed = []
 
-    def insert_and_shift(self, kf):
-        original(self, kf)
-        if self.processed == 8:  # move every keyframe and point of the map (x' = x + shift)
+    def process_and_shift(self, kf):
+        mapped = original(self, kf)
+        processed.append(kf)
+        if len(processed) == 8:  # move every keyframe and point of the map (x' = x + shift)
             for k in self.map.keyframes:
                 k.T_cw = k.T_cw @ inverse_pose(shift)
             for p in self.map.points:
                 p.position = p.position + shift[:3, 3]
+        return mapped
 
-    monkeypatch.setattr(LocalMapper, "insert_keyframe", insert_and_shift)
+    monkeypatch.setattr(LocalMapper, "process", process_and_shift)
     seq = arc(30)
     result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False, loop=LoopConfig(enabled=False)))
     assert result.tracked_ratio == 1.0

@@ -2,15 +2,13 @@
 with neighbours, fusion of duplicates, local bundle adjustment (`bundle_adjustment.py`, Huber) and
 redundant-keyframe culling.
 
-`LocalMapper` is synchronous: `insert_keyframe` processes the keyframe at once (then hands it to loop closing).
-`ThreadedLocalMapper` is the thin thread layer: the same `process` run from a queue in a worker thread.
+`LocalMapper.process` is synchronous; `keyframe_pipeline.py` runs it inline or in a worker thread, followed by loop
+closing (`system.run` sets that order).
 """
 
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,36 +58,23 @@ def alive_points(kf: KeyFrame) -> list[MapPoint]:
 
 
 class LocalMapper:
-    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None, loop_closer=None):
-        self.atlas, self.cfg, self.binary, self.rig, self.loop_closer = atlas, cfg, binary, rig, loop_closer
+    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None):
+        self.atlas, self.cfg, self.binary, self.rig = atlas, cfg, binary, rig
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.recent: list[MapPoint] = []
-        self.processed = 0
 
     @property
     def map(self) -> Map:
         """The active map: keyframes of a map left behind (tracking lost) are not mapped any further."""
         return self.atlas.active
 
-    # --- the interface the tracker sees ------------------------------------------------------------------------
-    def insert_keyframe(self, kf: KeyFrame) -> None:
-        self.process(kf)
-
-    def idle(self) -> bool:
-        return True
-
-    def finish(self) -> None:
-        """Wait for queued work (nothing to wait for in synchronous mode)."""
-
-    def catch_up(self, backlog: int) -> None:
-        """Wait until at most `backlog` keyframes are queued or being mapped (nothing to wait for inline)."""
-
     # --- one keyframe ------------------------------------------------------------------------------------------
-    def process(self, kf: KeyFrame) -> None:
+    def process(self, kf: KeyFrame) -> bool:
+        """Map one keyframe; False when it no longer belongs to the active map (culled, or its map left behind)."""
         with self.atlas.lock:
             if kf.is_bad or kf.map is not self.map:
-                return
+                return False
             self._insert(kf)
             self._cull_points(kf)
             self._triangulate(kf)
@@ -102,9 +87,7 @@ class LocalMapper:
             with self.atlas.lock:
                 self._write_back(problem, solution)
                 self._cull_keyframes(kf)
-        self.processed += 1
-        if self.loop_closer is not None:
-            self.loop_closer.process(kf)
+        return True
 
     def _insert(self, kf: KeyFrame) -> None:
         for i, p in enumerate(kf.points):
@@ -315,50 +298,3 @@ class LocalMapper:
             redundant = sum(1 for p in pts if len(p.observations) - 1 >= 3)
             if redundant > self.cfg.redundancy * len(pts):
                 self.map.remove_keyframe(n)
-
-
-class ThreadedLocalMapper(LocalMapper):
-    """The same mapper run by a worker thread: `insert_keyframe` queues, the thread calls `process`.
-
-    The tracker runs on while a keyframe is mapped (the BA solve holds no lock), and calls `catch_up` between
-    frames: a tracker far ahead of its mapper tracks against a map without the newest points and gets lost.
-    """
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.queue: queue.Queue[KeyFrame | None] = queue.Queue()
-        self.pending = 0  # keyframes queued or being mapped
-        self.done = threading.Condition()
-        self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, name="local-mapping", daemon=True)
-        self.thread.start()
-
-    def insert_keyframe(self, kf: KeyFrame) -> None:
-        with self.done:
-            self.pending += 1
-        self.queue.put(kf)
-
-    def idle(self) -> bool:
-        return self.pending == 0
-
-    def catch_up(self, backlog: int) -> None:
-        with self.done:
-            self.done.wait_for(lambda: self.pending <= backlog or not self.thread.is_alive())
-
-    def _run(self) -> None:
-        while (kf := self.queue.get()) is not None:
-            try:
-                self.process(kf)
-            except Exception as err:  # noqa: BLE001 (reported by finish(), never lost in the thread)
-                log.exception("Local mapping failed on %s.", kf)
-                self.error = err
-            finally:
-                with self.done:
-                    self.pending -= 1
-                    self.done.notify_all()
-
-    def finish(self) -> None:
-        self.queue.put(None)
-        self.thread.join()
-        if self.error is not None:
-            raise RuntimeError(f"Local mapping thread failed: {self.error}") from self.error

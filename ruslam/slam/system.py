@@ -1,9 +1,10 @@
 """`run(sequence, extractor, cfg) -> SLAMTrajectory`: the SLAM over a sequence, plus the TUM writer.
 
-Synchronous mode (default, used by tests): local mapping and loop closing run inline after each keyframe and every
-RANSAC is seeded, so a run is reproducible. Threaded mode: the same mapper in a worker thread
-(`ThreadedLocalMapper`). Bad frames (unreadable, black, featureless) are skipped with a warning and tracking
-resumes; a sequence that never initialises returns an empty trajectory with a warning, never a traceback.
+The pipeline order lives here: tracking, then for each new keyframe local mapping and then loop closing.
+Synchronous mode (default, used by tests): keyframes are processed inline and every RANSAC is seeded, so a run is
+reproducible. Threaded mode: the same processing in a worker thread (`keyframe_pipeline.py`). Bad frames
+(unreadable, black, featureless) are skipped with a warning and tracking resumes; a sequence that never initialises
+returns an empty trajectory with a warning, never a traceback.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from ruslam.slam.atlas import Atlas
 from ruslam.slam.conditioning import ImageConditioning
 from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, project, triangulate
-from ruslam.slam.local_mapping import LocalMapper, MappingConfig, ThreadedLocalMapper
+from ruslam.slam.keyframe_pipeline import KeyframePipeline, ThreadedKeyframePipeline
+from ruslam.slam.local_mapping import LocalMapper, MappingConfig
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, inverse_pose
 from ruslam.slam.readers import FrameReadError, Trajectory, write_tum_trajectory
@@ -149,11 +151,16 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     binary = bool(getattr(extractor, "binary", False))
     rig = (sequence.cameras[1].K, np.asarray(sequence.T_cam0_cam1, np.float64)) if stereo else None
     atlas = Atlas()
-    loop_closer = LoopCloser(atlas, None, cfg.loop, binary, stereo, cfg.seed)
-    mapper_cls = LocalMapper if cfg.synchronous else ThreadedLocalMapper
-    mapper = mapper_cls(atlas, cfg.mapping, binary, rig, loop_closer)
-    loop_closer.mapper = mapper
-    tracker = Tracker(atlas, mapper, loop_closer.database, cfg.tracking, binary, rig, cfg.seed)
+    mapper = LocalMapper(atlas, cfg.mapping, binary, rig)
+    loop_closer = LoopCloser(atlas, mapper, cfg.loop, binary, stereo, cfg.seed)
+
+    def process_keyframe(kf) -> None:  # local mapping, then loop closing on what it mapped
+        if mapper.process(kf):
+            loop_closer.process(kf)
+
+    keyframes = (KeyframePipeline if cfg.synchronous else ThreadedKeyframePipeline)(process_keyframe)
+    tracker = Tracker(atlas, keyframes, mapper.bundle_adjust, loop_closer.database, cfg.tracking, binary, rig,
+                      cfg.seed)
     n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
     timings = np.zeros(n)
     skipped = 0
@@ -171,10 +178,10 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                     kf1, tracker.initial_frame = tracker.initial_frame, None
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
-            mapper.catch_up(cfg.mapping_backlog)
+            keyframes.catch_up(cfg.mapping_backlog)
             timings[i] = time.perf_counter() - start
     finally:
-        mapper.finish()
+        keyframes.finish()
         blas.restore_original_limits()
     records, poses, map_frames = atlas.trajectory()
     if not records:

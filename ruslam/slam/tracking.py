@@ -8,8 +8,8 @@ tracker is lost: it relocalises against the active map (the latest keyframes and
 retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once (ORB-SLAM3); while that map
 initialises it keeps trying to relocalise in the map it lost. Loop closing merges the maps when they meet again.
 
-The Tracker holds no threads: it calls `mapper.insert_keyframe(kf)` and `mapper.idle()`, which the synchronous
-mapper runs inline and the threaded one queues.
+The Tracker holds no threads: it hands keyframes to `keyframes.insert_keyframe(kf)` and asks `keyframes.idle()`
+(`keyframe_pipeline.py`: inline or queued to a worker thread).
 """
 
 from __future__ import annotations
@@ -69,8 +69,11 @@ def _alive(p: MapPoint | None) -> MapPoint | None:
 
 
 class Tracker:
-    def __init__(self, atlas: Atlas, mapper, database, cfg: TrackingConfig, binary: bool, rig=None, seed: int = 0):
-        self.atlas, self.mapper, self.database, self.cfg = atlas, mapper, database, cfg
+    def __init__(self, atlas: Atlas, keyframes, bundle_adjust, database, cfg: TrackingConfig, binary: bool, rig=None,
+                 seed: int = 0):
+        # keyframes: the KeyframePipeline; bundle_adjust: LocalMapper.bundle_adjust (the initial map's BA)
+        self.atlas, self.keyframes, self.bundle_adjust, self.database = atlas, keyframes, bundle_adjust, database
+        self.cfg = cfg
         self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
@@ -205,7 +208,7 @@ class Tracker:
             p.add_observation(kf1, int(a))
             p.add_observation(kf2, int(b))
             self.map.add_point(p)
-        self.mapper.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id),
+        self.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id),
                                  (10, 10))
         seen = [p.position for p in kf1.points if p is not None]
         median = float(np.median(transform(kf1.T_cw, np.stack(seen))[:, 2])) if seen else 0.0
@@ -239,7 +242,7 @@ class Tracker:
         self.last_kf_index = frame.index
         self.velocity = None
         for k in kfs:
-            self.mapper.insert_keyframe(k)
+            self.keyframes.insert_keyframe(k)
 
     # --- frame-to-frame ----------------------------------------------------------------------------------------
     def _track_frame(self, frame: Frame) -> bool:
@@ -396,7 +399,7 @@ class Tracker:
         weak = tracked < ratio * ref_points or need_close
         # ORB-SLAM inserts when local mapping is idle; run inline, mapping is always idle and every frame would
         # become a keyframe, so "idle" also needs kf_min_frames since the last one (or very weak tracking)
-        allowed = since >= c.kf_max_frames or (self.mapper.idle() and since >= c.kf_min_frames)
+        allowed = since >= c.kf_max_frames or (self.keyframes.idle() and since >= c.kf_min_frames)
         urgent = tracked < c.kf_urgent_ratio * ref_points or tracked < c.kf_min_tracked
         return bool((allowed and weak or urgent) and tracked > 15)
 
@@ -407,7 +410,7 @@ class Tracker:
             self._add_stereo_points(kf, all_points=False)
         self.reference = kf
         self.last_kf_index = frame.index
-        self.mapper.insert_keyframe(kf)
+        self.keyframes.insert_keyframe(kf)
 
     def _add_stereo_points(self, kf: KeyFrame, all_points: bool) -> None:
         """ORB-SLAM's close stereo points: new map points from stereo depth for unmatched keypoints."""
