@@ -157,41 +157,6 @@ def test_matching_binary_and_float():
     assert len(i1) == 60 and np.all(i1 == i2)
 
 
-def _dense_masked_knn(d, mask, max_distance, ratio):
-    """Reference: the 2-NN ratio test and mutual check on the full distance matrix with masked pairs at inf."""
-    d = np.where(mask, d, np.inf)
-    rows = np.arange(len(d))
-    best = np.argmin(d, axis=1)
-    d1 = d[rows, best]
-    keep = (d1 <= max_distance) & (np.argmin(d, axis=0)[best] == rows)
-    d[rows, best] = np.inf
-    keep &= d1 < ratio * d.min(axis=1)
-    return np.nonzero(keep)[0], best[keep]
-
-
-@pytest.mark.parametrize("binary", [True, False])
-def test_masked_matching_equals_the_dense_search(binary):
-    """The sparse pair search (triangulation's epipolar band) returns what the dense masked matrix gives, ties
-    included (few-bit binary descriptors tie often)."""
-    rng = np.random.default_rng(11)
-    for case in range(40):
-        n1, n2 = rng.integers(1, 60, 2)
-        if binary:
-            a = rng.integers(0, 4, (n1, 2), dtype=np.uint8)
-            b = rng.integers(0, 4, (n2, 2), dtype=np.uint8)
-            max_distance = 3
-        else:
-            a = rng.normal(size=(n1, 8)).astype(np.float32)
-            b = rng.normal(size=(n2, 8)).astype(np.float32)
-            max_distance = 3.0
-        mask = rng.random((n1, n2)) < rng.choice([0.05, 0.3, 1.0])
-        d = descriptor_distances(a, b, binary)
-        e1, e2 = _dense_masked_knn(d, mask, max_distance, 0.8)
-        i1, i2 = match_knn_ratio(a, b, binary, max_distance, 0.8, mask=mask)
-        assert np.array_equal(i1, e1) and np.array_equal(i2, e2), case
-        assert np.all(mask[i1, i2])
-
-
 def test_window_search_respects_radius_and_uniqueness():
     rng = np.random.default_rng(8)
     kp = rng.uniform(0, 400, (200, 2))
