@@ -53,10 +53,6 @@ class MappingConfig:
             raise ValueError(f"mapping.ba_solver must be one of {SOLVERS}, got {self.ba_solver!r}.")
 
 
-def alive_points(kf: KeyFrame) -> list[MapPoint]:
-    return [p for p in kf.points if p is not None and not p.is_bad]
-
-
 class LocalMapper:
     def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None):
         self.atlas, self.cfg, self.binary, self.rig = atlas, cfg, binary, rig
@@ -128,7 +124,7 @@ class LocalMapper:
                 if baseline < np.linalg.norm(self.rig[1][:3, 3]):
                     continue
             else:
-                seen = alive_points(n)
+                seen = n.alive_points()
                 if not seen:
                     continue
                 depth = np.median(transform(n.T_cw, np.stack([p.position for p in seen]))[:, 2])
@@ -168,10 +164,10 @@ class LocalMapper:
                 if m is not kf and m not in targets:
                     targets.append(m)
         for t in targets:
-            self.fuse_points(t, alive_points(kf))
-        candidates = sorted({p for t in targets for p in alive_points(t)}, key=lambda p: p.id)
+            self.fuse_points(t, kf.alive_points())
+        candidates = sorted({p for t in targets for p in t.alive_points()}, key=lambda p: p.id)
         self.fuse_points(kf, candidates)
-        for p in alive_points(kf):
+        for p in kf.alive_points():
             p.update_descriptor(self.binary)
             p.update_normal()
         self.map.update_connections(kf)
@@ -216,7 +212,7 @@ class LocalMapper:
     def _local_ba_problem(self, kf: KeyFrame) -> dict | None:
         c = self.cfg
         local = [kf, *self.map.neighbours(kf, c.ba_keyframes - 1)]
-        points = sorted({p for k in local for p in alive_points(k)}, key=lambda p: p.id)
+        points = sorted({p for k in local for p in k.alive_points()}, key=lambda p: p.id)
         outside: dict[KeyFrame, int] = {}
         local_set = set(local)
         for p in points:
@@ -290,7 +286,7 @@ class LocalMapper:
         for n in self.map.neighbours(kf):
             if n is self.map.keyframes[0] or n is kf or n.loop_edges:
                 continue
-            pts = alive_points(n)
+            pts = n.alive_points()
             if self.rig is not None and n.depth is not None:
                 pts = [p for p in pts if np.isfinite(n.depth[p.observations[n]])]
             if len(pts) < 20:

@@ -26,7 +26,6 @@ import numpy as np
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
-from ruslam.slam.local_mapping import alive_points
 from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform
 from ruslam.slam.optimization import pose_graph_optimization
 
@@ -213,7 +212,7 @@ class LoopCloser:
             return None
         S12, _ = out
         loop_kfs = [cand, *_map_of(cand).neighbours(cand, 10)]
-        loop_points = sorted({p for k in loop_kfs for p in alive_points(k)}, key=lambda p: p.id)
+        loop_points = sorted({p for k in loop_kfs for p in k.alive_points()}, key=lambda p: p.id)
         X = np.stack([p.position for p in loop_points])
         Xc = transform(S12 @ cand.T_cw, X)
         z = Xc[:, 2]
@@ -240,7 +239,7 @@ class LoopCloser:
         corrected_by: dict[MapPoint, KeyFrame] = {}
         for k in connected:
             move = inverse_pose(corrected[k]) @ before[k]
-            for p in alive_points(k):
+            for p in k.alive_points():
                 if p not in corrected_by:
                     p.position = transform(move, p.position[None])[0]
                     corrected_by[p] = k

@@ -78,6 +78,10 @@ class Frame:
         R, t = self.T_cw[:3, :3], self.T_cw[:3, 3]
         return -(R.T @ t)
 
+    def alive_points(self) -> list:
+        """Its map points, without the culled and fused-away ones."""
+        return [p for p in self.points if p is not None and not p.is_bad]
+
     def matched_indices(self) -> np.ndarray:
         return np.array([i for i, p in enumerate(self.points) if p is not None and not p.is_bad], dtype=int)
 
