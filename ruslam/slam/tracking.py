@@ -208,8 +208,7 @@ class Tracker:
             p.add_observation(kf1, int(a))
             p.add_observation(kf2, int(b))
             self.map.add_point(p)
-        self.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id),
-                                 (10, 10))
+        self.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id), (10, 10))
         seen = [p.position for p in kf1.points if p is not None]
         median = float(np.median(transform(kf1.T_cw, np.stack(seen))[:, 2])) if seen else 0.0
         if median <= 0 or sum(p is not None for p in kf2.points) < c.init_min_matches // 2:
@@ -330,7 +329,7 @@ class Tracker:
                 if n not in counts and len(local) < 2 * self.cfg.local_keyframes:
                     counts[n] = 0
                     local.append(n)
-        seen = set().union(*(kf.points for kf in local)) - set(frame.points)  # set ops in C: ~40k entries
+        seen = set().union(*(kf.points for kf in local)) - set(frame.points)  # up to 40 keyframes' slots
         candidates = sorted((p for p in seen if p is not None and not p.is_bad), key=lambda p: p.id)
         self._search_points(frame, candidates, self.cfg.local_map_radius, count_visible=True)
         inliers = self._optimize(frame)
