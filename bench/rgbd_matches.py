@@ -2,6 +2,7 @@
 bound on what a monocular tracker can use, whatever its logic.
 
     nice .venv/bin/python bench/rgbd_matches.py [ROOT] [--extractors xfeat orb sift aliked] [--max-keypoints 2000]
+    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --max-keypoints 4096 --xfeat-threshold 0.01
 
 ROOT is a TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt; default: the TUM fr3 cabinet keyframes of
 ../shared/data). For each pair (i, i+step), the SLAM's matcher (mutual nearest neighbours, ratio 0.8, the tracker's
@@ -44,6 +45,7 @@ def main() -> None:
     ap.add_argument("root", nargs="?", default=str(DEFAULT_ROOT))
     ap.add_argument("--extractors", nargs="+", default=["xfeat", "orb", "sift", "aliked"])
     ap.add_argument("--max-keypoints", type=int, default=2000)
+    ap.add_argument("--xfeat-threshold", type=float, default=None, help="XFeat's detection threshold (its own: 0.05)")
     ap.add_argument("--steps", type=int, nargs="+", default=[1, 2])
     args = ap.parse_args()
     root = Path(args.root)
@@ -61,7 +63,10 @@ def main() -> None:
     print("extractor  step  keypoints  matches  correct: median  p10  pairs >= 30  pairs >= 50  inlier share")
     for name in args.extractors:
         try:
-            ex = load_extractor(name, **({} if name == "sift" else {"max_keypoints": args.max_keypoints}))
+            options = {} if name == "sift" else {"max_keypoints": args.max_keypoints}
+            if name == "xfeat" and args.xfeat_threshold is not None:
+                options["detection_threshold"] = args.xfeat_threshold
+            ex = load_extractor(name, **options)
         except (ImportError, FileNotFoundError) as e:
             print(f"{name:9s}  skipped: {e}")
             continue
