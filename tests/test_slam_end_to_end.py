@@ -131,17 +131,13 @@ def test_orb_keeps_tracking_over_a_washed_out_seafloor(cache):
 
 
 def _evaluation_options(name: str) -> SLAMConfig:
-    """The SLAM settings `python evaluate.py task=slam` uses for `name` (conf/slam/default.yaml + slam_options)."""
-    from pathlib import Path
+    """The SLAM settings `python evaluate.py task=slam` runs `name` with."""
+    from conftest import compose
 
-    from omegaconf import OmegaConf
-
+    from ruslam.eval.slam_report import slam_config_for
     from ruslam.slam.system import as_config
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    slam = OmegaConf.merge(OmegaConf.load(conf / "slam" / "default.yaml"),
-                           OmegaConf.load(conf / "task" / "slam.yaml").task.slam_options[name], {"progress": False})
-    return as_config(slam)
+    return as_config(slam_config_for(compose("evaluate", ["task=slam", "slam.progress=false"]), name))
 
 
 def test_xfeat_keeps_tracking_through_a_fast_turn_in_turbid_water(cache):

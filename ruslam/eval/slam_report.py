@@ -305,6 +305,12 @@ def dataset_label(dataset: DictConfig, opened: dict) -> str:
     return f"{Path(str(dataset.root)).name}, {len(opened)} sequence(s) ({sensor})"
 
 
+def slam_config_for(cfg, method: str):
+    """The SLAM settings a method runs with: `slam` merged with its `task.slam_options.<method>` (ORB's and XFeat's
+    conditioning and gates)."""
+    return OmegaConf.merge(cfg.slam, (cfg.task.get("slam_options") or {}).get(method) or {})
+
+
 def run(cfg: DictConfig, slam_run=None) -> dict:
     """Every sequence x extractor, the tables, plots and (embedded sequences) the turbidity sweep."""
     from ruslam.eval.matching_report import resolve_extractors  # noqa: PLC0415 (shared name -> extractor rules)
@@ -329,7 +335,7 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
     for name, seq in opened.items():
         seq.name = name
         for method, extractor in extractors.items():
-            slam_cfg = OmegaConf.merge(cfg.slam, (task.get("slam_options") or {}).get(method) or {})
+            slam_cfg = slam_config_for(cfg, method)
             try:
                 estimate = slam_run(seq, extractor, slam_cfg)
             except RuntimeError as exc:  # a failed solve (gtsam raises RuntimeError) or mapping thread: an x cell;

@@ -79,4 +79,4 @@ class ThreadedKeyframePipeline(KeyframePipeline):
         self.queue.put(None)
         self.thread.join()
         if self.error is not None:
-            raise RuntimeError(f"Local mapping thread failed: {self.error}") from self.error
+            raise RuntimeError(f"Keyframe thread (local mapping, loop closing) failed: {self.error}") from self.error
