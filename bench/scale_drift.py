@@ -1,0 +1,127 @@
+"""Monocular scale drift on a robustness-matrix variant, against the rendered ground truth.
+
+    nice .venv/bin/python bench/scale_drift.py lowtex_s4 --split dev --extractors orb xfeat
+    nice .venv/bin/python bench/scale_drift.py lowtex_s4 --extractors xfeat --frames 40 --map-depth
+
+Runs the SLAM with the evaluation's options for each extractor (`task.slam_options`, `dataset.extractor_options`;
+extra `--set slam.<key>=<value>` overrides), loop closing off, so the scale is what tracking and local mapping keep
+on their own. Prints the estimated / true distance between frames ten apart along the trajectory (the estimate's
+scale; monocular, so only its change matters) and the ratio of the last window to the first.
+
+`--map-depth` also prints, per frame, the scale of the frame's step (est / true) next to the scale of the depths of
+the map points it tracked (estimated depth / depth of the rendered seafloor at the keypoint, median): in a healthy
+run the two agree; a step scale below the depth scale is tracking that shortens the motion against its own map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ruslam import load_extractor  # noqa: E402
+from ruslam.eval.slam_report import open_sequence, slam_config_for  # noqa: E402
+from ruslam.slam import tracking  # noqa: E402
+from ruslam.slam.map import inverse_pose, transform  # noqa: E402
+from ruslam.slam.robustness import MAX_INCIDENCE_DEG, SurveyConfig, survey_poses, survey_seafloor  # noqa: E402
+from ruslam.slam.synthetic_sequence import pixel_rays, render, texture_pyramid  # noqa: E402
+from ruslam.slam.system import run  # noqa: E402
+
+
+def window_scales(frames: np.ndarray, centres: np.ndarray, truth: np.ndarray, window: int = 10) -> list[tuple]:
+    """(first frame, est / true distance) over consecutive windows of `window` posed frames."""
+    out = []
+    for k in range(0, len(frames) - window, window):
+        true = np.linalg.norm(truth[frames[k + window]] - truth[frames[k]])
+        out.append((int(frames[k]), float(np.linalg.norm(centres[k + window] - centres[k]) / max(true, 1e-12))))
+    return out
+
+
+class MapDepthProbe:
+    """Wraps `Tracker._track_local_map`: after each frame, its step scale and the depth scale of its tracked points."""
+
+    def __init__(self, survey: SurveyConfig):
+        self.poses = survey_poses(survey)
+        floor = survey_seafloor(survey, self.poses)
+        self.render = lambda i: render(floor, pixel_rays(survey.camera()), self.poses[i],
+                                       texture_levels=self.levels, max_incidence_deg=MAX_INCIDENCE_DEG)[1]
+        self.levels = texture_pyramid(floor.texture)
+        self.K = survey.camera().K
+        self.last = None
+        self.rows = []
+
+    def wrap(self, track_local_map):
+        def probed(tracker, frame):
+            ok = track_local_map(tracker, frame)
+            self.measure(frame)
+            return ok
+        return probed
+
+    def measure(self, frame) -> None:
+        used = [(k, p) for k, p in enumerate(frame.points) if p is not None and not frame.outliers[k]]
+        if not used:
+            return
+        kp = frame.keypoints[[k for k, _ in used]]
+        z_est = transform(frame.T_cw, np.stack([p.position for _, p in used]))[:, 2]
+        h, w = frame.image_size[1], frame.image_size[0]
+        rng = self.render(frame.index)
+        r = rng[np.clip(np.round(kp[:, 1]).astype(int), 0, h - 1), np.clip(np.round(kp[:, 0]).astype(int), 0, w - 1)]
+        rays = np.column_stack([(kp - self.K[:2, 2]) / np.diag(self.K)[:2], np.ones(len(kp))])
+        z_true = r / np.linalg.norm(rays, axis=1)
+        centre = inverse_pose(frame.T_cw)[:3, 3]
+        step = np.nan
+        if self.last is not None:
+            i0, c0 = self.last
+            step = np.linalg.norm(centre - c0) / np.linalg.norm(self.poses[frame.index, :3, 3] - self.poses[i0, :3, 3])
+        self.rows.append((frame.index, step, float(np.median(z_est / z_true)), len(used)))
+        self.last = (frame.index, centre)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("variant")
+    ap.add_argument("--split", default="dev")
+    ap.add_argument("--extractors", nargs="+", default=["orb", "xfeat"])
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--map-depth", action="store_true")
+    ap.add_argument("--set", nargs="*", default=[], help="slam.<key>=<value> overrides")
+    args = ap.parse_args()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
+        cfg = compose("evaluate", overrides=["task=slam", "dataset=robustness", f"dataset.split={args.split}"])
+    entry = OmegaConf.to_container(cfg.dataset.sequences, resolve=True)[args.variant]
+    sequence = open_sequence(cfg.dataset, args.variant, entry)
+    survey = SurveyConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in entry.items()})
+    truth = survey_poses(survey)[:, :3, 3]
+    for name in args.extractors:
+        slam = OmegaConf.merge(slam_config_for(cfg, name), OmegaConf.from_dotlist(
+            ["loop.enabled=false", "progress=false", f"max_frames={args.frames or 'null'}"]
+            + [s.removeprefix("slam.") for s in args.set]))
+        options = {**(cfg.task.extractor_options.get(name) or {}), **(cfg.dataset.extractor_options.get(name) or {})}
+        probe = MapDepthProbe(survey) if args.map_depth else None
+        original = tracking.Tracker._track_local_map
+        if probe is not None:
+            tracking.Tracker._track_local_map = probe.wrap(original)
+        try:
+            traj = run(sequence, load_extractor(name, **options), instantiate(slam))
+        finally:
+            tracking.Tracker._track_local_map = original
+        scales = window_scales(traj.frame_indices, traj.poses[:, :3, 3], truth)
+        drift = scales[-1][1] / scales[0][1] if scales else float("nan")
+        print(f"{args.variant} {name}: {len(traj)}/{traj.num_frames} frames posed, {traj.num_keyframes} keyframes, "
+              f"scale last/first window {drift:.3f}")
+        print("  scale per 10 frames: " + " ".join(f"{i}:{s:.3f}" for i, s in scales))
+        if probe is not None:
+            for i, step, depth, n in probe.rows:
+                print(f"  frame {i:4d}: step scale {step:.3f}  map-depth scale {depth:.3f}  ({n} inliers)")
+
+
+if __name__ == "__main__":
+    main()
