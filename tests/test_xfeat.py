@@ -106,3 +106,25 @@ def test_teacher_rejects_bad_shapes(teacher):
         teacher(torch.rand(3, 64, 64))
     out = teacher(torch.rand(2, 3, 120, 168))  # multiple of 8, not of 32: padded inside, cropped back
     assert out["keypoint_logits"].shape == (2, 65, 15, 21)
+
+
+def test_resize_min_equals_upsampling_by_hand():
+    """resize_min runs XFeat on the upsampled image and maps keypoints back to input pixels: the same keypoints as
+    upsampling by hand (bilinear, half-pixel centres) and mapping with x = (x' + 0.5) / 2 - 0.5."""
+    rgb = textured_image(h=120, w=160, seed=3)
+    up = F.interpolate(torch.from_numpy(rgb).permute(2, 0, 1)[None], size=(240, 320), mode="bilinear",
+                       align_corners=False)[0].permute(1, 2, 0).numpy()
+    small = load_extractor("xfeat", max_keypoints=300, resize_min=320, vlad_codebook=None).extract(rgb)
+    by_hand = load_extractor("xfeat", max_keypoints=300, vlad_codebook=None).extract(np.ascontiguousarray(up))
+    assert len(small["keypoints"]) == len(by_hand["keypoints"]) > 100
+    np.testing.assert_allclose(small["keypoints"], (by_hand["keypoints"] + 0.5) / 2 - 0.5, atol=1e-4)
+    np.testing.assert_allclose(small["descriptors"], by_hand["descriptors"], atol=1e-4)
+    assert small["keypoints"].max(0).tolist() < [160, 120] and small["keypoints"].min() > -0.5
+    native = load_extractor("xfeat", max_keypoints=300, vlad_codebook=None).extract(rgb)
+    assert not np.allclose(native["keypoints"][:50], small["keypoints"][:50])  # the option did something
+
+
+@pytest.mark.parametrize("size", [0, -640, "640", 10**6])
+def test_resize_min_rejects_what_is_not_a_size(size):
+    with pytest.raises(ValueError, match="resize_min"):
+        load_extractor("xfeat", resize_min=size, vlad_codebook=None)

