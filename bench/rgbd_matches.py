@@ -3,6 +3,7 @@ bound on what a monocular tracker can use, whatever its logic.
 
     nice .venv/bin/python bench/rgbd_matches.py [ROOT] [--extractors xfeat orb sift aliked] [--max-keypoints 2000]
     nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --max-keypoints 4096 --xfeat-threshold 0.01
+    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --xfeat-resize-min 1280   # XFeat on 2x frames
 
 ROOT is a TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt; default: the TUM fr3 cabinet keyframes of
 ../shared/data). For each pair (i, i+step), the SLAM's matcher (mutual nearest neighbours, ratio 0.8, the tracker's
@@ -46,6 +47,7 @@ def main() -> None:
     ap.add_argument("--extractors", nargs="+", default=["xfeat", "orb", "sift", "aliked"])
     ap.add_argument("--max-keypoints", type=int, default=2000)
     ap.add_argument("--xfeat-threshold", type=float, default=None, help="XFeat's detection threshold (its own: 0.05)")
+    ap.add_argument("--xfeat-resize-min", type=int, default=None, help="XFeat's resize_min (upsample smaller frames)")
     ap.add_argument("--steps", type=int, nargs="+", default=[1, 2])
     args = ap.parse_args()
     root = Path(args.root)
@@ -66,6 +68,8 @@ def main() -> None:
             options = {} if name == "sift" else {"max_keypoints": args.max_keypoints}
             if name == "xfeat" and args.xfeat_threshold is not None:
                 options["detection_threshold"] = args.xfeat_threshold
+            if name == "xfeat" and args.xfeat_resize_min is not None:
+                options["resize_min"] = args.xfeat_resize_min
             ex = load_extractor(name, **options)
         except (ImportError, FileNotFoundError) as e:
             print(f"{name:9s}  skipped: {e}")
