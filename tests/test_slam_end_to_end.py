@@ -4,8 +4,7 @@ Rendered at 320x240 into a temporary cache: a quarter lap (40 frames, 0.1 m per 
 with frames blacked out in the middle (tracking must come back and stay one trajectory), and a full lap (loop
 closure; with a long blackout, a new map that is merged into the first when the path comes back over it).
 Also XFeat with the evaluation's options through a fast turn in turbid water and over low texture (DEV robustness
-variants). All slow:
-each runs in well under a few minutes on 2 cores.
+variants). All slow: each runs in well under a few minutes on 2 cores.
 """
 
 from __future__ import annotations
