@@ -27,7 +27,7 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ruslam import load_extractor  # noqa: E402
+from ruslam.eval.matching_report import resolve_extractors  # noqa: E402
 from ruslam.eval.slam_report import open_sequence, slam_config_for  # noqa: E402
 from ruslam.slam import tracking  # noqa: E402
 from ruslam.slam.map import inverse_pose, transform  # noqa: E402
@@ -104,13 +104,13 @@ def main() -> None:
         slam = OmegaConf.merge(slam_config_for(cfg, name), OmegaConf.from_dotlist(
             ["loop.enabled=false", "progress=false", f"max_frames={args.frames or 'null'}"]
             + [s.removeprefix("slam.") for s in args.set]))
-        options = {**(cfg.task.extractor_options.get(name) or {}), **(cfg.dataset.extractor_options.get(name) or {})}
         probe = MapDepthProbe(survey) if args.map_depth else None
         original = tracking.Tracker._track_local_map
         if probe is not None:
             tracking.Tracker._track_local_map = probe.wrap(original)
         try:
-            traj = run(sequence, load_extractor(name, **options), instantiate(slam))
+            extractor = resolve_extractors([name], cfg.task, cfg.dataset.extractor_options)[0][name]
+            traj = run(sequence, extractor, instantiate(slam))
         finally:
             tracking.Tracker._track_local_map = original
         scales = window_scales(traj.frame_indices, traj.poses[:, :3, 3], truth)
