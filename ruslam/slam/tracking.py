@@ -70,9 +70,12 @@ def _alive(p: MapPoint | None) -> MapPoint | None:
 
 class Tracker:
     def __init__(self, atlas: Atlas, keyframes, bundle_adjust, database, cfg: TrackingConfig, binary: bool, rig=None,
-                 seed: int = 0):
-        # keyframes: the KeyframePipeline; bundle_adjust: LocalMapper.bundle_adjust (the initial map's BA)
+                 seed: int = 0, pair_matcher=None):
+        # keyframes: the KeyframePipeline; bundle_adjust: LocalMapper.bundle_adjust (the initial map's BA);
+        # pair_matcher: a learned two-image matcher (e.g. LightGlue) for initialisation, the descriptor fallbacks and
+        # relocalisation, where nearest neighbours alone find too few matches; None = kNN + ratio test
         self.atlas, self.keyframes, self.bundle_adjust, self.database = atlas, keyframes, bundle_adjust, database
+        self.pair_matcher = pair_matcher
         self.cfg = cfg
         self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
@@ -182,12 +185,15 @@ class Tracker:
         if ref is None or frame.index - ref.index > c.init_max_frames:
             self.init_frame = frame if len(frame) >= c.init_min_matches else None
             return False
-        ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors, c.init_window,
-                                  self.binary, self.max_distance, c.window_ratio)
-        if len(ip) < c.init_min_matches:  # a wide baseline (or a fast turn) moves points beyond the window
-            jp, jk = match_knn_ratio(ref.descriptors, frame.descriptors, self.binary, self.max_distance, c.ratio)
-            if len(jp) > len(ip):
-                ip, ik = jp, jk
+        if self.pair_matcher is not None:
+            ip, ik = self._match_pair(ref, frame)
+        else:
+            ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors,
+                                      c.init_window, self.binary, self.max_distance, c.window_ratio)
+            if len(ip) < c.init_min_matches:  # a wide baseline (or a fast turn) moves points beyond the window
+                jp, jk = match_knn_ratio(ref.descriptors, frame.descriptors, self.binary, self.max_distance, c.ratio)
+                if len(jp) > len(ip):
+                    ip, ik = jp, jk
         if len(ip) < c.init_min_matches:
             # the reference is kept while it still overlaps (parallax grows), replaced once it no longer does
             if len(ip) < c.init_min_matches // 2:
@@ -290,8 +296,7 @@ class Tracker:
         idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
         if len(idx) == 0:
             return False
-        ia, ib = match_knn_ratio(ref.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
-                                 self.cfg.ratio)
+        ia, ib = self._match_points(ref, idx, frame)
         if len(ia) < 15:
             return False
         points = [_alive(ref.points[a]) for a in idx[ia]]
@@ -301,6 +306,21 @@ class Tracker:
             frame.points[b] = p
         frame.T_cw = self.last.T_cw.copy()
         return self._optimize(frame) >= 10
+
+    def _match_pair(self, a: Frame, b: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """All keypoints of `a` against all of `b` by the learned matcher (the context it was trained with)."""
+        return self.pair_matcher(a.keypoints, a.descriptors, a.image_size, b.keypoints, b.descriptors, b.image_size)
+
+    def _match_points(self, ref: Frame, idx: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Matches (positions in idx, frame keypoints) of ref's keypoints idx (those with map points) in `frame`."""
+        if self.pair_matcher is None:
+            return match_knn_ratio(ref.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
+                                   self.cfg.ratio)
+        ia, ib = self._match_pair(ref, frame)
+        position = np.full(len(ref), -1)
+        position[idx] = np.arange(len(idx))
+        keep = position[ia] >= 0
+        return position[ia[keep]], ib[keep]
 
     def _pnp(self, frame: Frame, points: list[MapPoint], kp_idx: np.ndarray) -> bool:
         X = np.stack([p.position for p in points])
@@ -441,8 +461,7 @@ class Tracker:
             idx = kf.matched_indices()
             if len(idx) < 15:
                 continue
-            ia, ib = match_knn_ratio(kf.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
-                                     self.cfg.ratio)
+            ia, ib = self._match_points(kf, idx, frame)
             if len(ia) < 15:
                 continue
             frame.points = [None] * len(frame)
