@@ -149,3 +149,29 @@ def test_a_keyframe_moved_by_inline_mapping_gives_its_frame_the_new_pose(monkeyp
     result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False, loop=LoopConfig(enabled=False)))
     assert result.tracked_ratio == 1.0
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
+def test_a_pair_matcher_serves_initialisation_fallbacks_and_triangulation(caplog):
+    """With `pair_matcher` set (LightGlue in the evaluation), initialisation, the descriptor fallback of the sudden
+    turn and the new points of each keyframe come from it: here a kNN stand-in that records who called it."""
+    from ruslam.slam.feature_matching import match_knn_ratio
+    from ruslam.slam.geometry import pose_matrix
+    from ruslam.slam.optimization import se3_exp
+
+    calls = []
+
+    def pair_matcher(kp0, d0, size0, kp1, d1, size1):
+        import inspect
+
+        calls.append(next(f.function for f in inspect.stack()[1:4] if not f.function.startswith("_match")))
+        assert len(kp0) == len(d0) and len(kp1) == len(d1) and size0 == size1 == (640, 480)
+        return match_knn_ratio(d0, d1, False, 0.5)
+
+    seq = arc()
+    seq.poses[21:] = seq.poses[21:] @ pose_matrix(se3_exp(np.array([0, 0, np.radians(25), 0, 0, 0]))[:3, :3], 0)
+    with caplog.at_level(logging.DEBUG, logger="ruslam.slam.tracking"):
+        result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False, pair_matcher=pair_matcher))
+    assert calls[0] == "_initialize_mono" and {"_track_by_descriptor", "_triangulate"} <= set(calls)
+    assert "Frame 21: last frame by descriptor." in caplog.text
+    assert result.tracked_ratio == 1.0
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01

@@ -73,9 +73,14 @@ class LightGlueMatcher:
             return np.zeros(0, int), np.zeros(0, int)
 
         def side(kp, desc, size):
-            return {"keypoints": torch.as_tensor(np.asarray(kp, np.float32))[None],
+            # undistorted keypoints may leave the image, which LightGlue rejects: shift them into a box that holds
+            # them all (its positional encoding only sees differences within one image)
+            kp = np.asarray(kp, np.float32)
+            lo = np.minimum(kp.min(0), 0.0)
+            hi = np.maximum(kp.max(0) + 1.0, np.asarray(size, np.float32))
+            return {"keypoints": torch.from_numpy(kp - lo)[None],
                     "descriptors": torch.as_tensor(np.asarray(desc, np.float32))[None],
-                    "image_size": torch.tensor([size], dtype=torch.float32)}
+                    "image_size": torch.from_numpy(hi - lo)[None]}
 
         with torch.inference_mode():
             m = self.net({"image0": side(kp0, desc0, size0), "image1": side(kp1, desc1, size1)})["matches"][0]

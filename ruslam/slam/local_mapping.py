@@ -18,6 +18,7 @@ from ruslam.slam.bundle_adjustment import SOLVERS, bundle_adjustment
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
+    epipolar_distances,
     epipolar_mask,
     fundamental_from_poses,
     triangulate,
@@ -36,6 +37,8 @@ class MappingConfig:
     sigma_binary: float = 1.0  # keypoint noise (px), as TrackingConfig
     sigma_float: float = 1.0
     triangulation_neighbours: int = 10
+    pair_matcher_neighbours: int = 1  # with a pair matcher (SLAMConfig.pair_matcher): the most covisible keyframes
+    # matched by it for new points (epipolar-checked), the others by kNN + ratio inside the epipolar band
     epipolar_px: float = 4.0
     min_parallax_deg: float = 1.0
     max_distance_ratio: float = 1.8  # of a new point's distances to the two keyframes
@@ -54,8 +57,9 @@ class MappingConfig:
 
 
 class LocalMapper:
-    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None):
+    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None, pair_matcher=None):
         self.atlas, self.cfg, self.binary, self.rig = atlas, cfg, binary, rig
+        self.pair_matcher = pair_matcher
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.recent: list[MapPoint] = []
@@ -116,6 +120,7 @@ class LocalMapper:
         K = kf.K
         free1 = np.array([p is None for p in kf.points])
         neighbours = self.map.neighbours(kf, c.triangulation_neighbours)
+        learned = set(neighbours[: c.pair_matcher_neighbours]) if self.pair_matcher is not None else set()
         # widest baseline first: a keypoint is triangulated with the most distant neighbour that sees it
         neighbours.sort(key=lambda n: -np.linalg.norm(n.center - kf.center))
         for n in neighbours:
@@ -135,10 +140,17 @@ class LocalMapper:
             if len(i1) == 0 or len(i2) == 0:
                 continue
             F = fundamental_from_poses(K, n.K, n.T_cw @ inverse_pose(kf.T_cw))
-            mask = epipolar_mask(F, kf.keypoints[i1], n.keypoints[i2], c.epipolar_px)
-            a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance, c.ratio,
-                                   mutual=True, mask=mask)
-            a, b = i1[a], i2[b]
+            if n in learned:
+                a, b = self.pair_matcher(kf.keypoints, kf.descriptors, kf.image_size, n.keypoints, n.descriptors,
+                                         n.image_size)
+                keep = free1[a] & np.array([n.points[j] is None for j in b], bool)
+                keep &= epipolar_distances(F, kf.keypoints[a], n.keypoints[b]) < c.epipolar_px
+                a, b = a[keep], b[keep]
+            else:
+                mask = epipolar_mask(F, kf.keypoints[i1], n.keypoints[i2], c.epipolar_px)
+                a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance,
+                                       c.ratio, mutual=True, mask=mask)
+                a, b = i1[a], i2[b]
             X = triangulate(K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b])
             ok = triangulation_mask(X, K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b],
                                     max_error_px=np.sqrt(CHI2_2DOF) * self.sigma, min_parallax_deg=c.min_parallax_deg)

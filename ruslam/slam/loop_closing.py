@@ -106,9 +106,10 @@ def _map_of(kf: KeyFrame) -> Map | None:
 
 
 class LoopCloser:
-    def __init__(self, atlas: Atlas, mapper, cfg: LoopConfig, binary: bool, stereo: bool, seed: int = 0):
+    def __init__(self, atlas: Atlas, mapper, cfg: LoopConfig, binary: bool, stereo: bool, seed: int = 0,
+                 pair_matcher=None):
         self.atlas, self.mapper, self.cfg, self.binary, self.stereo = atlas, mapper, cfg, binary, stereo
-        self.seed = seed
+        self.seed, self.pair_matcher = seed, pair_matcher  # pair_matcher: as the Tracker's, for verification
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.database = KeyFrameDatabase()
         self.groups: list[tuple[set[KeyFrame], int]] = []
@@ -198,11 +199,17 @@ class LoopCloser:
         ia, ib = kf.matched_indices(), cand.matched_indices()
         if len(ia) < c.min_matches or len(ib) < c.min_matches:
             return None
-        a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
+        if self.pair_matcher is not None:  # all keypoints matched, then those with map points on both sides kept
+            a, b = self.pair_matcher(kf.keypoints, kf.descriptors, kf.image_size, cand.keypoints, cand.descriptors,
+                                     cand.image_size)
+            keep = np.isin(a, ia) & np.isin(b, ib)
+            a, b = a[keep], b[keep]
+        else:
+            a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
+            a, b = ia[a], ib[b]
         if len(a) < c.min_matches:
             log.debug("Candidate %s for %s rejected: %d descriptor matches.", cand, kf, len(a))
             return None
-        a, b = ia[a], ib[b]
         P1 = transform(kf.T_cw, np.stack([kf.points[i].position for i in a]))
         P2 = transform(cand.T_cw, np.stack([cand.points[i].position for i in b]))
         out = sim3_ransac(P1, P2, kf.keypoints[a], cand.keypoints[b], kf.K, cand.K, with_scale=not self.stereo,
