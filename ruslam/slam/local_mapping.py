@@ -37,8 +37,8 @@ class MappingConfig:
     sigma_binary: float = 1.0  # keypoint noise (px), as TrackingConfig
     sigma_float: float = 1.0
     triangulation_neighbours: int = 10
-    pair_matcher_neighbours: int = 1  # with a pair matcher (SLAMConfig.pair_matcher): the most covisible keyframes
-    # matched by it for new points (epipolar-checked), the others by kNN + ratio inside the epipolar band
+    pair_matcher_below: int = 0  # with a pair matcher (SLAMConfig.pair_matcher): when kNN in the epipolar bands
+    # gave a keyframe fewer new points than this, its most covisible neighbour is matched by it too (epipolar-checked)
     epipolar_px: float = 4.0
     min_parallax_deg: float = 1.0
     max_distance_ratio: float = 1.8  # of a new point's distances to the two keyframes
@@ -117,12 +117,21 @@ class LocalMapper:
     # --- new points --------------------------------------------------------------------------------------------
     def _triangulate(self, kf: KeyFrame) -> None:
         c = self.cfg
-        K = kf.K
         free1 = np.array([p is None for p in kf.points])
         neighbours = self.map.neighbours(kf, c.triangulation_neighbours)
-        learned = set(neighbours[: c.pair_matcher_neighbours]) if self.pair_matcher is not None else set()
+        best = neighbours[:1]
         # widest baseline first: a keypoint is triangulated with the most distant neighbour that sees it
         neighbours.sort(key=lambda n: -np.linalg.norm(n.center - kf.center))
+        new = self._triangulate_with(kf, neighbours, free1, learned=False)
+        if self.pair_matcher is not None and new < c.pair_matcher_below:
+            new += self._triangulate_with(kf, best, free1, learned=True)
+        log.debug("%s: %d map points tracked, %d new.", kf, len(kf.points) - int(free1.sum()) - new, new)
+
+    def _triangulate_with(self, kf: KeyFrame, neighbours: list[KeyFrame], free1: np.ndarray, learned: bool) -> int:
+        """New points of kf's free keypoints (free1, updated) with each neighbour; returns how many."""
+        c = self.cfg
+        K = kf.K
+        new = 0
         for n in neighbours:
             baseline = np.linalg.norm(n.center - kf.center)
             if self.rig is not None:
@@ -140,7 +149,7 @@ class LocalMapper:
             if len(i1) == 0 or len(i2) == 0:
                 continue
             F = fundamental_from_poses(K, n.K, n.T_cw @ inverse_pose(kf.T_cw))
-            if n in learned:
+            if learned:
                 a, b = self.pair_matcher(kf.keypoints, kf.descriptors, kf.image_size, n.keypoints, n.descriptors,
                                          n.image_size)
                 keep = free1[a] & np.array([n.points[j] is None for j in b], bool)
@@ -168,6 +177,8 @@ class LocalMapper:
                 self.map.add_point(p)
                 self.recent.append(p)
                 free1[ia] = False
+                new += 1
+        return new
 
     def _fuse(self, kf: KeyFrame) -> None:
         targets = []

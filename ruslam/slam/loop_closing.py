@@ -199,14 +199,14 @@ class LoopCloser:
         ia, ib = kf.matched_indices(), cand.matched_indices()
         if len(ia) < c.min_matches or len(ib) < c.min_matches:
             return None
-        if self.pair_matcher is not None:  # all keypoints matched, then those with map points on both sides kept
+        a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
+        a, b = ia[a], ib[b]
+        if len(a) < c.min_matches and self.pair_matcher is not None:  # the learned matcher when kNN finds too few:
+            # all keypoints matched, then those with map points on both sides kept
             a, b = self.pair_matcher(kf.keypoints, kf.descriptors, kf.image_size, cand.keypoints, cand.descriptors,
                                      cand.image_size)
             keep = np.isin(a, ia) & np.isin(b, ib)
             a, b = a[keep], b[keep]
-        else:
-            a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
-            a, b = ia[a], ib[b]
         if len(a) < c.min_matches:
             log.debug("Candidate %s for %s rejected: %d descriptor matches.", cand, kf, len(a))
             return None

@@ -185,13 +185,13 @@ class Tracker:
         if ref is None or frame.index - ref.index > c.init_max_frames:
             self.init_frame = frame if len(frame) >= c.init_min_matches else None
             return False
-        if self.pair_matcher is not None:
-            ip, ik = self._match_pair(ref, frame)
-        else:
-            ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors,
-                                      c.init_window, self.binary, self.max_distance, c.window_ratio)
-            if len(ip) < c.init_min_matches:  # a wide baseline (or a fast turn) moves points beyond the window
-                jp, jk = match_knn_ratio(ref.descriptors, frame.descriptors, self.binary, self.max_distance, c.ratio)
+        ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors, c.init_window,
+                                  self.binary, self.max_distance, c.window_ratio)
+        # a wide baseline (or a fast turn) moves points beyond the window: kNN over the whole image, then the pair
+        # matcher (learned, and ~50x dearer) if even that finds too few
+        for match in (self._match_knn, self._match_pair if self.pair_matcher is not None else None):
+            if len(ip) < c.init_min_matches and match is not None:
+                jp, jk = match(ref, np.arange(len(ref)), frame)
                 if len(jp) > len(ip):
                     ip, ik = jp, jk
         if len(ip) < c.init_min_matches:
@@ -262,15 +262,17 @@ class Tracker:
                 if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
                     return True
-        if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last):
-            log.debug("Frame %d: last frame by descriptor.", frame.index)
-            return True
-        if self._track_by_descriptor(frame, self.reference):
-            log.debug("Frame %d: reference keyframe by descriptor.", frame.index)
-            return True
-        if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
-            log.debug("Frame %d tracked by the local-map fallback.", frame.index)
-            return True
+        for match in self._matchers():  # every nearest-neighbour fallback first, then the pair matcher's
+            how = "" if match == self._match_knn else " (pair matcher)"
+            if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last, match):
+                log.debug("Frame %d: last frame by descriptor%s.", frame.index, how)
+                return True
+            if self._track_by_descriptor(frame, self.reference, match):
+                log.debug("Frame %d: reference keyframe by descriptor%s.", frame.index, how)
+                return True
+            if not how and self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
+                log.debug("Frame %d tracked by the local-map fallback.", frame.index)
+                return True
         return False
 
     def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
@@ -286,7 +288,7 @@ class Tracker:
         frame.points = [None] * len(frame)
         return self._pnp(frame, [points[a] for a in ia], ib)
 
-    def _track_by_descriptor(self, frame: Frame, ref: Frame) -> bool:
+    def _track_by_descriptor(self, frame: Frame, ref: Frame, match) -> bool:
         """Fallback: kNN + ratio test against the map points of `ref` (the last frame: the closest view in a fast
         turn; the reference keyframe), then the pose by PnP RANSAC (from the last pose if that fails). PnP comes
         first: in a turn the last pose is several degrees off, and from there noisy matches (ORB on low-contrast
@@ -296,7 +298,7 @@ class Tracker:
         idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
         if len(idx) == 0:
             return False
-        ia, ib = self._match_points(ref, idx, frame)
+        ia, ib = match(ref, idx, frame)
         if len(ia) < 15:
             return False
         points = [_alive(ref.points[a]) for a in idx[ia]]
@@ -307,16 +309,19 @@ class Tracker:
         frame.T_cw = self.last.T_cw.copy()
         return self._optimize(frame) >= 10
 
-    def _match_pair(self, a: Frame, b: Frame) -> tuple[np.ndarray, np.ndarray]:
-        """All keypoints of `a` against all of `b` by the learned matcher (the context it was trained with)."""
-        return self.pair_matcher(a.keypoints, a.descriptors, a.image_size, b.keypoints, b.descriptors, b.image_size)
+    # Matching ref's keypoints idx to `frame` without a pose: -> (positions in idx, keypoints of frame)
+    def _matchers(self) -> list:
+        """kNN + ratio first; the pair matcher (if any) only when that fails, so easy frames pay nothing for it."""
+        return [self._match_knn] + ([self._match_pair] if self.pair_matcher is not None else [])
 
-    def _match_points(self, ref: Frame, idx: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
-        """Matches (positions in idx, frame keypoints) of ref's keypoints idx (those with map points) in `frame`."""
-        if self.pair_matcher is None:
-            return match_knn_ratio(ref.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
-                                   self.cfg.ratio)
-        ia, ib = self._match_pair(ref, frame)
+    def _match_knn(self, ref: Frame, idx: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        return match_knn_ratio(ref.descriptors[idx], frame.descriptors, self.binary, self.max_distance,
+                               self.cfg.ratio)
+
+    def _match_pair(self, ref: Frame, idx: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """All keypoints matched by the learned matcher (the context it was trained with), then those in idx kept."""
+        ia, ib = self.pair_matcher(ref.keypoints, ref.descriptors, ref.image_size, frame.keypoints,
+                                   frame.descriptors, frame.image_size)
         position = np.full(len(ref), -1)
         position[idx] = np.arange(len(idx))
         keep = position[ia] >= 0
@@ -457,20 +462,21 @@ class Tracker:
         if frame.global_descriptor is not None and self.database is not None and len(self.database):
             candidates += self.database.query(frame.global_descriptor, self.cfg.reloc_candidates, set(candidates),
                                               maps=[in_map])
-        for kf in candidates:
-            idx = kf.matched_indices()
-            if len(idx) < 15:
-                continue
-            ia, ib = self._match_points(kf, idx, frame)
-            if len(ia) < 15:
-                continue
-            frame.points = [None] * len(frame)
-            if not self._pnp(frame, [kf.points[a] for a in idx[ia]], ib):
-                continue
-            self._search_points(frame, [p for p in kf.points if p is not None and not p.is_bad], 10.0)
-            if self._optimize(frame) >= 50:
-                log.info("Frame %d relocalised against keyframe %d.", frame.index, kf.id)
-                self.reference = kf
-                return True
+        for match in self._matchers():  # every candidate by kNN first, then by the pair matcher
+            for kf in candidates:
+                idx = kf.matched_indices()
+                if len(idx) < 15:
+                    continue
+                ia, ib = match(kf, idx, frame)
+                if len(ia) < 15:
+                    continue
+                frame.points = [None] * len(frame)
+                if not self._pnp(frame, [kf.points[a] for a in idx[ia]], ib):
+                    continue
+                self._search_points(frame, [p for p in kf.points if p is not None and not p.is_bad], 10.0)
+                if self._optimize(frame) >= 50:
+                    log.info("Frame %d relocalised against keyframe %d.", frame.index, kf.id)
+                    self.reference = kf
+                    return True
         frame.T_cw = None
         return False
