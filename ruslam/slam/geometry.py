@@ -194,12 +194,6 @@ def epipolar_mask(F, x1, x2, max_px: float) -> np.ndarray:
     return np.abs(num, out=num) < max_px
 
 
-def epipolar_distances(F, x1, x2) -> np.ndarray:
-    """[N] pixels between x2[i] and the epipolar line of x1[i] (paired, unlike `epipolar_mask`)."""
-    lines = np.c_[x1, np.ones(len(x1))] @ F.T
-    return np.abs(np.sum(lines[:, :2] * x2, 1) + lines[:, 2]) / np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-12)
-
-
 # --- similarity / rigid alignment --------------------------------------------------------------------------------
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> np.ndarray:
     """Least-squares S (4x4, sR|t) with dst ~ s R src + t (Umeyama 1991); rigid when with_scale is False."""

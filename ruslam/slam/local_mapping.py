@@ -18,7 +18,6 @@ from ruslam.slam.bundle_adjustment import SOLVERS, bundle_adjustment
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
-    epipolar_distances,
     epipolar_mask,
     fundamental_from_poses,
     triangulate,
@@ -37,8 +36,6 @@ class MappingConfig:
     sigma_binary: float = 1.0  # keypoint noise (px), as TrackingConfig
     sigma_float: float = 1.0
     triangulation_neighbours: int = 10
-    pair_matcher_below: int = 0  # with a pair matcher (SLAMConfig.pair_matcher): when kNN in the epipolar bands
-    # gave a keyframe fewer new points than this, its most covisible neighbour is matched by it too (epipolar-checked)
     epipolar_px: float = 4.0
     min_parallax_deg: float = 1.0
     max_distance_ratio: float = 1.8  # of a new point's distances to the two keyframes
@@ -57,9 +54,8 @@ class MappingConfig:
 
 
 class LocalMapper:
-    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None, pair_matcher=None):
+    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None):
         self.atlas, self.cfg, self.binary, self.rig = atlas, cfg, binary, rig
-        self.pair_matcher = pair_matcher
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.recent: list[MapPoint] = []
@@ -117,21 +113,11 @@ class LocalMapper:
     # --- new points --------------------------------------------------------------------------------------------
     def _triangulate(self, kf: KeyFrame) -> None:
         c = self.cfg
+        K = kf.K
         free1 = np.array([p is None for p in kf.points])
         neighbours = self.map.neighbours(kf, c.triangulation_neighbours)
-        best = neighbours[:1]
         # widest baseline first: a keypoint is triangulated with the most distant neighbour that sees it
         neighbours.sort(key=lambda n: -np.linalg.norm(n.center - kf.center))
-        new = self._triangulate_with(kf, neighbours, free1, learned=False)
-        if self.pair_matcher is not None and new < c.pair_matcher_below:
-            new += self._triangulate_with(kf, best, free1, learned=True)
-        log.debug("%s: %d map points tracked, %d new.", kf, len(kf.points) - int(free1.sum()) - new, new)
-
-    def _triangulate_with(self, kf: KeyFrame, neighbours: list[KeyFrame], free1: np.ndarray, learned: bool) -> int:
-        """New points of kf's free keypoints (free1, updated) with each neighbour; returns how many."""
-        c = self.cfg
-        K = kf.K
-        new = 0
         for n in neighbours:
             baseline = np.linalg.norm(n.center - kf.center)
             if self.rig is not None:
@@ -149,17 +135,10 @@ class LocalMapper:
             if len(i1) == 0 or len(i2) == 0:
                 continue
             F = fundamental_from_poses(K, n.K, n.T_cw @ inverse_pose(kf.T_cw))
-            if learned:
-                a, b = self.pair_matcher(kf.keypoints, kf.descriptors, kf.image_size, n.keypoints, n.descriptors,
-                                         n.image_size)
-                keep = free1[a] & np.array([n.points[j] is None for j in b], bool)
-                keep &= epipolar_distances(F, kf.keypoints[a], n.keypoints[b]) < c.epipolar_px
-                a, b = a[keep], b[keep]
-            else:
-                mask = epipolar_mask(F, kf.keypoints[i1], n.keypoints[i2], c.epipolar_px)
-                a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance,
-                                       c.ratio, mutual=True, mask=mask)
-                a, b = i1[a], i2[b]
+            mask = epipolar_mask(F, kf.keypoints[i1], n.keypoints[i2], c.epipolar_px)
+            a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance, c.ratio,
+                                   mutual=True, mask=mask)
+            a, b = i1[a], i2[b]
             X = triangulate(K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b])
             ok = triangulation_mask(X, K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b],
                                     max_error_px=np.sqrt(CHI2_2DOF) * self.sigma, min_parallax_deg=c.min_parallax_deg)
@@ -177,8 +156,6 @@ class LocalMapper:
                 self.map.add_point(p)
                 self.recent.append(p)
                 free1[ia] = False
-                new += 1
-        return new
 
     def _fuse(self, kf: KeyFrame) -> None:
         targets = []

@@ -154,7 +154,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     binary = bool(getattr(extractor, "binary", False))
     rig = (sequence.cameras[1].K, np.asarray(sequence.T_cam0_cam1, np.float64)) if stereo else None
     atlas = Atlas()
-    mapper = LocalMapper(atlas, cfg.mapping, binary, rig, cfg.pair_matcher)
+    mapper = LocalMapper(atlas, cfg.mapping, binary, rig)
     loop_closer = LoopCloser(atlas, mapper, cfg.loop, binary, stereo, cfg.seed, cfg.pair_matcher)
 
     def process_keyframe(kf) -> None:  # local mapping, then loop closing on what it mapped
