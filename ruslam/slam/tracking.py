@@ -3,7 +3,8 @@
 A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when
 that fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the
 reference keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor
-without any window (PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted). When all fail the
+without any window (PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); with a learned pair
+matcher (LightGlue), the last frame and the reference keyframe once more through it. When all fail the
 tracker is lost: it relocalises against the active map (the latest keyframes and, with a global descriptor,
 retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once (ORB-SLAM3); while that map
 initialises it keeps trying to relocalise in the map it lost. Loop closing merges the maps when they meet again.
@@ -189,8 +190,8 @@ class Tracker:
                                   self.binary, self.max_distance, c.window_ratio)
         # a wide baseline (or a fast turn) moves points beyond the window: kNN over the whole image, then the pair
         # matcher (learned, and ~50x dearer) if even that finds too few
-        for match in (self._match_knn, self._match_pair if self.pair_matcher is not None else None):
-            if len(ip) < c.init_min_matches and match is not None:
+        for match in self._matchers():
+            if len(ip) < c.init_min_matches:
                 jp, jk = match(ref, np.arange(len(ref)), frame)
                 if len(jp) > len(ip):
                     ip, ik = jp, jk
@@ -289,11 +290,11 @@ class Tracker:
         return self._pnp(frame, [points[a] for a in ia], ib)
 
     def _track_by_descriptor(self, frame: Frame, ref: Frame, match) -> bool:
-        """Fallback: kNN + ratio test against the map points of `ref` (the last frame: the closest view in a fast
-        turn; the reference keyframe), then the pose by PnP RANSAC (from the last pose if that fails). PnP comes
-        first: in a turn the last pose is several degrees off, and from there noisy matches (ORB on low-contrast
-        texture) pulled the pose optimisation into a wrong minimum that the map then kept (DEV lowtex,
-        BENCHMARKS.md)."""
+        """Fallback: `ref`'s map points matched by `match` (kNN + ratio, or the pair matcher) in `frame` (ref: the
+        last frame, the closest view in a fast turn; the reference keyframe), then the pose by PnP RANSAC (from the
+        last pose if that fails). PnP comes first: in a turn the last pose is several degrees off, and from there
+        noisy matches (ORB on low-contrast texture) pulled the pose optimisation into a wrong minimum that the map
+        then kept (DEV lowtex, BENCHMARKS.md)."""
         frame.points = [None] * len(frame)
         idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
         if len(idx) == 0:
@@ -457,7 +458,8 @@ class Tracker:
 
     # --- relocalisation ----------------------------------------------------------------------------------------
     def _relocalize(self, frame: Frame, in_map: Map) -> bool:
-        """Candidates: the latest keyframes of `in_map`, then global-descriptor retrieval in it; kNN + PnP."""
+        """Candidates: the latest keyframes of `in_map`, then global-descriptor retrieval in it; kNN (then the pair
+        matcher) + PnP."""
         candidates = in_map.keyframes[-self.cfg.reloc_candidates:][::-1]
         if frame.global_descriptor is not None and self.database is not None and len(self.database):
             candidates += self.database.query(frame.global_descriptor, self.cfg.reloc_candidates, set(candidates),
