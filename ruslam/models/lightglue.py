@@ -47,7 +47,7 @@ class LightGlueMatcher:
     `filter_threshold` is LightGlue's match confidence floor (0.1, its own default). Sizes are (width, height)."""
 
     def __init__(self, features: str = "xfeat", filter_threshold: float = 0.1, weights: str | Path | None = None):
-        if features not in LightGlue.features or features not in WEIGHTS:
+        if features not in WEIGHTS:
             raise ValueError(f"No LightGlue weights for {features!r} features; expected one of {sorted(WEIGHTS)}.")
         if not 0.0 <= filter_threshold < 1.0:
             raise ValueError(f"LightGlue filter_threshold must be in [0, 1), got {filter_threshold}.")
@@ -66,7 +66,6 @@ class LightGlueMatcher:
         state.setdefault("confidence_thresholds", self.net.confidence_thresholds)  # derived, not stored
         load_strict(self.net, state, source)
         self.net.eval()
-        self.features = features
 
     def __call__(self, kp0, desc0, size0, kp1, desc1, size1) -> tuple[np.ndarray, np.ndarray]:
         if len(kp0) < 2 or len(kp1) < 2:
