@@ -189,7 +189,7 @@ class Tracker:
         ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors, c.init_window,
                                   self.binary, self.max_distance, c.window_ratio)
         # a wide baseline (or a fast turn) moves points beyond the window: kNN over the whole image, then the pair
-        # matcher (learned, and ~50x dearer) if even that finds too few
+        # matcher (learned, 0.5-1.5 s a pair on one core) if even that finds too few
         for match in self._matchers():
             if len(ip) < c.init_min_matches:
                 jp, jk = match(ref, np.arange(len(ref)), frame)
