@@ -264,14 +264,15 @@ class Tracker:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
                     return True
         for match in self._matchers():  # every nearest-neighbour fallback first, then the pair matcher's
-            how = "" if match == self._match_knn else " (pair matcher)"
+            knn = match == self._match_knn
+            how = "" if knn else " (pair matcher)"
             if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last, match):
                 log.debug("Frame %d: last frame by descriptor%s.", frame.index, how)
                 return True
             if self._track_by_descriptor(frame, self.reference, match):
                 log.debug("Frame %d: reference keyframe by descriptor%s.", frame.index, how)
                 return True
-            if not how and self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
+            if knn and self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
                 log.debug("Frame %d tracked by the local-map fallback.", frame.index)
                 return True
         return False
