@@ -75,7 +75,8 @@ def main() -> None:
     print(f"{root.name}: {len(seq)} frames; correct = within 4 px by depth + true pose")
     if any(len(p) != 2 or not all(0 <= v < len(seq) for v in p) for p in pairs):
         raise SystemExit(f"--pairs {args.pairs}: expected I:J with frame indices in 0..{len(seq) - 1}.")
-    print("extractor  step  keypoints  matches  correct: median  p10  pairs >= 30  pairs >= 50  inlier share")
+    if not pairs:
+        print("extractor  step  keypoints  matches  correct: median  p10  pairs >= 30  pairs >= 50  inlier share")
     for name in args.extractors:
         try:
             options = {} if name == "sift" else {"max_keypoints": args.max_keypoints}
@@ -91,7 +92,6 @@ def main() -> None:
         glue = LightGlueMatcher(name) if args.lightglue and name in WEIGHTS else None
         size = seq.cameras[0].width, seq.cameras[0].height
         gate_d = gate.max_distance_binary if ex.binary else gate.max_distance_float
-
         label = name + ("+LG" if glue is not None else "")
         todo = pairs or [(i, i + step) for step in args.steps for i in range(len(seq) - step)]
         counts = {}  # (i, j) -> (keypoints of i, matches, correct matches)
