@@ -3,7 +3,7 @@
     nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo] [--no-loop]
     nice .venv/bin/python bench/slam.py --variant dev:turn9 --profile     # a robustness-matrix variant, per stage
     nice .venv/bin/python bench/slam.py --variant test:base --laps 16 --frames 2000 --extractors orb   # memory
-    nice .venv/bin/python bench/slam.py --modes sync threaded     # both modes, one after the other per extractor
+    nice .venv/bin/python bench/slam.py --modes sync threaded threaded-gil   # the modes, one after the other
     nice .venv/bin/python bench/slam.py --ba-solvers gtsam schur  # the two bundle-adjustment solvers
 
 For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
@@ -78,7 +78,8 @@ def stage_table(stats: pstats.Stats, frames: int, total: float) -> str:
 
 
 class MemorySampler(threading.Thread):
-    """Resident set size (MB) of this process every `period` seconds, with the time of each sample."""
+    """Resident set size (MB) of this process and its children (the threaded mode's solver process) every `period`
+    seconds, with the time of each sample."""
 
     def __init__(self, period: float = 0.5):
         super().__init__(daemon=True)
@@ -87,14 +88,30 @@ class MemorySampler(threading.Thread):
     def run(self):
         page_mb = os.sysconf("SC_PAGE_SIZE") / 2**20
         while not self.done.is_set():
-            with open("/proc/self/statm") as f:
-                self.samples.append((time.perf_counter(), int(f.read().split()[1]) * page_mb))
+            self.samples.append((time.perf_counter(), sum(_rss_pages(pid) for pid in _self_and_children()) * page_mb))
             self.done.wait(self.period)
 
     def stop(self) -> np.ndarray:
         self.done.set()
         self.join()
         return np.array(self.samples)
+
+
+def _self_and_children() -> list[str]:
+    children = []
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            children += (task / "children").read_text().split()
+        except OSError:  # a thread that just ended
+            pass
+    return ["self", *children]
+
+
+def _rss_pages(pid: str) -> int:
+    try:
+        return int(Path(f"/proc/{pid}/statm").read_text().split()[1])
+    except (OSError, IndexError):  # a child that just ended
+        return 0
 
 
 def memory_line(samples: np.ndarray, timings: np.ndarray) -> str:
@@ -136,8 +153,9 @@ def main() -> None:
     parser.add_argument("--variant", default=None, help="robustness-matrix variant split:name, e.g. dev:turn9")
     parser.add_argument("--laps", type=float, default=None, help="laps of the --variant (a long run for memory)")
     parser.add_argument("--profile", action="store_true", help="time per SLAM stage (cProfile)")
-    parser.add_argument("--modes", nargs="+", default=["sync"], choices=["sync", "threaded"],
-                        help="synchronous (inline mapping) and/or threaded (mapping in its own thread)")
+    parser.add_argument("--modes", nargs="+", default=["sync"], choices=["sync", "threaded", "threaded-gil"],
+                        help="synchronous (inline mapping), threaded (mapping in its own thread, BA in a child "
+                             "process) and/or threaded-gil (BA in the mapping thread: solver_process=false)")
     parser.add_argument("--ba-solvers", nargs="+", default=["gtsam"], choices=list(SOLVERS),
                         help="mapping.ba_solver values to run (ruslam.slam.bundle_adjustment)")
     args = parser.parse_args()
@@ -161,7 +179,8 @@ def main() -> None:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
         for mode, solver in itertools.product(args.modes, args.ba_solvers):
-            cfg = SLAMConfig(progress=False, synchronous=mode == "sync", max_frames=n,
+            cfg = SLAMConfig(progress=False, synchronous=mode == "sync", solver_process=mode == "threaded",
+                             max_frames=n,
                              mapping=MappingConfig(ba_solver=solver),
                              loop=LoopConfig(enabled=not args.no_loop, global_bundle_adjustment=args.global_ba))
             profiler = cProfile.Profile() if args.profile else None

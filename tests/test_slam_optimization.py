@@ -192,3 +192,27 @@ def test_sim3_pose_graph_closes_a_loop_with_scale_drift():
     assert rms(out) < 0.3 * rms(drifted)
     assert rms(out) < 0.5 * rms(se3)  # only a similarity graph can absorb scale drift
     assert np.allclose(out[0], drifted[0]) and np.allclose(se3[0], drifted[0])  # the fixed pose stays
+
+
+def test_solver_process_solves_in_a_child_as_in_process():
+    """The threaded SLAM's solver process returns what `bundle_adjustment` returns, from another process, and a
+    child that dies becomes one clear error instead of a hang."""
+    import os
+    import signal
+
+    from ruslam.slam.solver_process import SolverProcess
+
+    _, noisy, _, Xn, oi, oj, ouv, _ = _ba_problem(stereo=False)
+    fixed = np.array([True, True, False, False, False])
+    solver = SolverProcess()
+    try:
+        child = solver.pool.submit(os.getpid).result()
+        assert child != os.getpid()
+        for a, b in zip(solver(noisy, fixed, Xn, oi, oj, ouv, K), bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K),
+                        strict=True):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+        os.kill(child, signal.SIGKILL)
+        with pytest.raises(RuntimeError, match="bundle-adjustment process died"):
+            solver(noisy, fixed, Xn, oi, oj, ouv, K)
+    finally:
+        solver.close()

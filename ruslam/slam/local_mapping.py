@@ -9,6 +9,7 @@ closing (`system.run` sets that order).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,8 +55,10 @@ class MappingConfig:
 
 
 class LocalMapper:
-    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None):
-        self.atlas, self.cfg, self.binary, self.rig = atlas, cfg, binary, rig
+    def __init__(self, atlas: Atlas, cfg: MappingConfig, binary: bool, rig=None,
+                 solve: Callable[..., tuple] = bundle_adjustment):
+        # solve: `bundle_adjustment`, or the same call in a child process (`solver_process.SolverProcess`)
+        self.atlas, self.cfg, self.binary, self.rig, self.solve = atlas, cfg, binary, rig, solve
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.recent: list[MapPoint] = []
@@ -77,8 +80,9 @@ class LocalMapper:
             self._fuse(kf)
             problem = self._local_ba_problem(kf) if len(self.map.keyframes) > 2 else None
         if problem is not None:
-            # solved outside the lock: a threaded tracker goes on meanwhile (with the numpy solver, which releases the
-            # GIL); what it changes (new keyframes, counters) is not in the problem, and the write-back re-checks
+            # solved outside the lock: a threaded tracker goes on meanwhile (with a solver process or the numpy
+            # solver, which release the GIL); what it changes (new keyframes, counters) is not in the problem, and
+            # the write-back re-checks
             solution = self._solve(problem, self.cfg.ba_iterations)
             with self.atlas.lock:
                 self._write_back(problem, solution)
@@ -262,9 +266,9 @@ class LocalMapper:
     def _solve(self, problem: dict, iterations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)
         q = problem
-        return bundle_adjustment(q["poses"], q["fixed"], q["positions"], q["oi"], q["oj"], q["uv"], q["kfs"][0].K,
-                                 q["right"], K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma,
-                                 solver=self.cfg.ba_solver)
+        return self.solve(q["poses"], q["fixed"], q["positions"], q["oi"], q["oj"], q["uv"], q["kfs"][0].K,
+                          q["right"], K_r, T_c0_c1, iterations=tuple(iterations), sigma=self.sigma,
+                          solver=self.cfg.ba_solver)
 
     def _write_back(self, problem: dict, solution) -> None:
         poses, pts, inl = solution

@@ -2,9 +2,9 @@
 
 The pipeline order lives here: tracking, then for each new keyframe local mapping and then loop closing.
 Synchronous mode (default, used by tests): keyframes are processed inline and every RANSAC is seeded, so a run is
-reproducible. Threaded mode: the same processing in a worker thread (`keyframe_pipeline.py`). Bad frames
-(unreadable, black, featureless) are skipped with a warning and tracking resumes; a sequence that never initialises
-returns an empty trajectory with a warning, never a traceback.
+reproducible. Threaded mode: the same processing in a worker thread (`keyframe_pipeline.py`), bundle adjustment in
+a child process (`solver_process.py`). Bad frames (unreadable, black, featureless) are skipped with a warning and
+tracking resumes; a sequence that never initialises returns an empty trajectory with a warning, never a traceback.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from ruslam.slam.atlas import Atlas
+from ruslam.slam.bundle_adjustment import bundle_adjustment
 from ruslam.slam.conditioning import ImageConditioning
 from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, project, triangulate
@@ -28,6 +29,7 @@ from ruslam.slam.local_mapping import LocalMapper, MappingConfig
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, inverse_pose
 from ruslam.slam.readers import FrameReadError, Trajectory, write_tum_trajectory
+from ruslam.slam.solver_process import SolverProcess
 from ruslam.slam.tracking import Tracker, TrackingConfig
 
 log = logging.getLogger(__name__)
@@ -38,6 +40,7 @@ class SLAMConfig:
     sensor: str = "auto"  # "mono", "stereo", or "auto" (stereo when the sequence has two cameras)
     synchronous: bool = True
     mapping_backlog: int = 1  # threaded mode: keyframes queued or being mapped before the tracker waits for them
+    solver_process: bool = True  # threaded mode: bundle adjustment in a child process (gtsam holds the GIL)
     blas_threads: int | None = 1  # numpy/scipy/OpenCV BLAS threads during the run (None: leave as is); the SLAM's
     # matrices are small, and OpenBLAS threads that spin for a busy core made a run 2.5x slower (BENCHMARKS.md)
     seed: int = 0
@@ -154,7 +157,8 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     binary = bool(getattr(extractor, "binary", False))
     rig = (sequence.cameras[1].K, np.asarray(sequence.T_cam0_cam1, np.float64)) if stereo else None
     atlas = Atlas()
-    mapper = LocalMapper(atlas, cfg.mapping, binary, rig)
+    solver = SolverProcess(cfg.blas_threads) if not cfg.synchronous and cfg.solver_process else None
+    mapper = LocalMapper(atlas, cfg.mapping, binary, rig, solver or bundle_adjustment)
     loop_closer = LoopCloser(atlas, mapper, cfg.loop, binary, stereo, cfg.seed, cfg.pair_matcher)
 
     def process_keyframe(kf) -> None:  # local mapping, then loop closing on what it mapped
@@ -185,6 +189,8 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
             timings[i] = time.perf_counter() - start
     finally:
         keyframes.finish()
+        if solver is not None:
+            solver.close()
         blas.restore_original_limits()
     records, poses, map_frames = atlas.trajectory()
     if not records:
