@@ -24,7 +24,7 @@ from ruslam.slam.geometry import (
     triangulate,
     triangulation_mask,
 )
-from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform
+from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform, update_descriptors
 
 log = logging.getLogger(__name__)
 
@@ -96,9 +96,9 @@ class LocalMapper:
             elif kf not in p.observations:
                 p.add_observation(kf, i)
                 p.update_normal()
-                p.update_descriptor(self.binary)
             else:  # created by this keyframe (stereo points)
                 self.recent.append(p)
+        update_descriptors(kf.alive_points(), self.binary)
         self.map.update_connections(kf)
 
     def _cull_points(self, kf: KeyFrame) -> None:
@@ -171,8 +171,9 @@ class LocalMapper:
             self.fuse_points(t, kf.alive_points())
         candidates = sorted({p for t in targets for p in t.alive_points()}, key=lambda p: p.id)
         self.fuse_points(kf, candidates)
-        for p in kf.alive_points():
-            p.update_descriptor(self.binary)
+        points = kf.alive_points()
+        update_descriptors(points, self.binary)
+        for p in points:
             p.update_normal()
         self.map.update_connections(kf)
 
@@ -242,23 +243,28 @@ class LocalMapper:
         if not points or len(kfs) < 2:
             return None
         kidx = {k: i for i, k in enumerate(kfs)}
-        # a point seen once (without a stereo measurement) has no depth: leave it out, it would stall LM
-        points = [p for p in points if sum(k in kidx for k in p.observations) >= 2
-                  or (self.rig is not None and any(k in kidx and np.isfinite(k.right[i, 0])
-                                                   for k, i in p.observations.items() if k.right is not None))]
-        if not points:
-            return None
-        rows = []
-        for j, p in enumerate(points):
+        rows, kept = [], []  # (keyframe, point, keypoint, right camera) per observation; the points they refer to
+        for p in points:
+            obs = []
             for k, i in p.observations.items():
                 if k in kidx:
-                    rows.append((kidx[k], j, i, False))
+                    obs.append((kidx[k], len(kept), i, False))
                     if self.rig is not None and k.right is not None and np.isfinite(k.right[i, 0]):
-                        rows.append((kidx[k], j, i, True))
+                        obs.append((kidx[k], len(kept), i, True))
+            # a point seen once (without a stereo measurement) has no depth: leave it out, it would stall LM
+            if len(obs) >= 2:
+                rows += obs
+                kept.append(p)
         if not rows:
             return None
+        points = kept
         oi, oj, ok, orr = (np.array(col) for col in zip(*rows, strict=True))
-        uv = np.stack([(kfs[a].right if r else kfs[a].keypoints)[b] for a, b, r in zip(oi, ok, orr, strict=True)])
+        uv = np.empty((len(oi), 2))
+        for a, k in enumerate(kfs):
+            for right, pixels in ((False, k.keypoints), (True, k.right)):
+                sel = (oi == a) & (orr == right)
+                if sel.any():
+                    uv[sel] = pixels[ok[sel]]
         return {"kfs": kfs, "points": points, "fixed": np.asarray(fixed, bool), "oi": oi, "oj": oj, "uv": uv,
                 "right": orr, "poses": np.stack([k.T_cw for k in kfs]),
                 "positions": np.stack([p.position for p in points])}

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ruslam.slam.feature_matching import descriptor_distances
 
 
 def inverse_pose(T: np.ndarray) -> np.ndarray:
@@ -186,18 +185,37 @@ class MapPoint:
         self.normal = normal
         self._normal_key = tuple(kf.id for kf in self.observations)
 
-    def update_descriptor(self, binary: bool) -> None:
-        """The observation descriptor with the least median distance to the others (ORB-SLAM's choice)."""
-        key = tuple((kf.id, i) for kf, i in self.observations.items())
-        if key == self._descriptor_key:
-            return
-        self._descriptor_key = key
-        descs = np.stack([kf.descriptors[i] for kf, i in self.observations.items()])
-        if len(descs) < 3:
-            self.descriptor = descs[-1] if len(descs) else self.descriptor
-            return
-        d = np.sort(descriptor_distances(descs, descs, binary), axis=1)
-        self.descriptor = descs[int(np.argmin(d[:, (len(descs) - 1) // 2]))]  # lower median, as ORB-SLAM
+def update_descriptors(points, binary: bool) -> None:
+    """Each point's descriptor: the observation descriptor with the least median distance to the others (ORB-SLAM's
+    choice), recomputed only where the observations changed. Points with the same number of observations are done
+    in one batch (a keyframe's few thousand points: ~50 batched products instead of one small product per point).
+    """
+    stale: dict[int, list[MapPoint]] = {}
+    for p in points:
+        key = tuple((kf.id, i) for kf, i in p.observations.items())
+        if key != p._descriptor_key and key:
+            p._descriptor_key = key
+            stale.setdefault(len(key), []).append(p)
+    for n, group in stale.items():
+        descs = np.stack([kf.descriptors[i] for p in group for kf, i in p.observations.items()])
+        descs = descs.reshape(len(group), n, -1)  # [points, observations, descriptor]
+        if n < 3:
+            best = np.full(len(group), n - 1)
+        else:
+            d = np.sort(_batched_distances(descs, binary), axis=2)
+            best = np.argmin(d[:, :, (n - 1) // 2], axis=1)  # lower median, as ORB-SLAM
+        for p, desc in zip(group, descs[np.arange(len(group)), best], strict=True):
+            p.descriptor = desc
+
+
+def _batched_distances(descs: np.ndarray, binary: bool) -> np.ndarray:
+    """`descriptor_distances(a, a)` for each [n, D] set of a batch [B, n, D] -> [B, n, n] (float32)."""
+    if binary:
+        return np.bitwise_count(descs[:, :, None] ^ descs[:, None]).sum(-1, dtype=np.int32).astype(np.float32)
+    a = descs.astype(np.float32, copy=False)
+    sq = (a * a).sum(2)
+    d2 = sq[:, :, None] + sq[:, None] - 2.0 * a @ a.transpose(0, 2, 1)
+    return np.sqrt(np.maximum(d2, 0.0))
 
 
 class Map:
