@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-
 def inverse_pose(T: np.ndarray) -> np.ndarray:
     """Exact inverse of a 4x4 rigid transform or similarity [sR | t]."""
     A_inv = np.linalg.inv(T[:3, :3])
