@@ -1,43 +1,75 @@
 """Bundle adjustment in a child process, for the threaded SLAM.
 
 gtsam holds the GIL while it builds and solves a graph (~0.5 s for a local BA of 15k observations), so a mapper
-thread that solves in-process stalls the tracker for that long. Solved in a child process, the mapper thread only
-waits on a pipe (GIL released) and the tracker runs on. The child is started once per run (spawned: a forked child
-would inherit torch's thread pools) and receives plain arrays: `bundle_adjustment`'s arguments and result.
+thread that solves in-process stalls the tracker that long. Solved in a child process, the mapper thread only waits
+on a pipe (GIL released) and the tracker runs on. The child is a plain Python running `main` below: it reads
+pickled `bundle_adjustment` arguments on stdin and writes the result on stdout (multiprocessing's spawn would
+re-import the caller's main script in the child, torch included: 590 MB resident instead of 124 MB).
 """
 
 from __future__ import annotations
 
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+import pickle
+import subprocess
+import sys
+import threading
 
 import numpy as np
-
-from ruslam.slam.bundle_adjustment import bundle_adjustment
-
-
-def _limit_blas(threads: int | None) -> None:
-    if threads is not None:
-        from threadpoolctl import threadpool_limits  # noqa: PLC0415 (child process only)
-
-        threadpool_limits(threads, user_api="blas")
 
 
 class SolverProcess:
     """A callable with `bundle_adjustment`'s signature that solves in one persistent child process."""
 
     def __init__(self, blas_threads: int | None = 1):
-        self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=_limit_blas, initargs=(blas_threads,))
-        self.pool.submit(int)  # start the child now (~1 s to spawn and import), while the map initialises
+        command = [sys.executable, "-c", "from ruslam.slam.solver_process import main; main()"]
+        self.process = subprocess.Popen(command + ([str(blas_threads)] if blas_threads else []),
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self.lock = threading.Lock()  # one problem at a time (the mapper thread; the tracker's initial BA)
 
     def __call__(self, *args, **kwargs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        try:
-            return self.pool.submit(bundle_adjustment, *args, **kwargs).result()
-        except BrokenProcessPool as err:
-            raise RuntimeError("The bundle-adjustment process died (out of memory or killed); run the SLAM with "
-                               "`synchronous: true` or `mapping_process: false` to solve in-process.") from err
+        with self.lock:
+            try:
+                pickle.dump((args, kwargs), self.process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                self.process.stdin.flush()
+                ok, result = pickle.load(self.process.stdout)
+            except (EOFError, OSError, pickle.UnpicklingError) as err:
+                raise RuntimeError(f"The bundle-adjustment process died (exit code {self.process.poll()}); run the "
+                                   "SLAM with `synchronous: true` or `solver_process: false` to solve in-process.") \
+                    from err
+        if not ok:
+            raise RuntimeError(f"Bundle adjustment failed in the solver process: {result}")
+        return result
 
     def close(self) -> None:
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        if self.process.poll() is None:
+            self.process.stdin.close()  # the child ends at end of input
+            try:
+                self.process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.process.stdout.close()
+
+
+def main() -> None:
+    """The child: solve each problem read from stdin until it closes."""
+    from threadpoolctl import threadpool_limits  # noqa: PLC0415 (the child only)
+
+    from ruslam.slam.bundle_adjustment import bundle_adjustment  # noqa: PLC0415
+
+    if len(sys.argv) > 1:
+        threadpool_limits(int(sys.argv[1]), user_api="blas")
+    requests, results = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr  # a print or log line must never land in the result pipe
+    while True:
+        try:
+            args, kwargs = pickle.load(requests)
+        except EOFError:
+            return
+        try:
+            reply = (True, bundle_adjustment(*args, **kwargs))
+        except Exception as err:  # noqa: BLE001 (sent to the parent, which raises it)
+            reply = (False, f"{type(err).__name__}: {err}")
+        pickle.dump(reply, results, protocol=pickle.HIGHEST_PROTOCOL)
+        results.flush()
+
