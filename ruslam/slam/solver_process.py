@@ -72,4 +72,3 @@ def main() -> None:
             reply = (False, f"{type(err).__name__}: {err}")
         pickle.dump(reply, results, protocol=pickle.HIGHEST_PROTOCOL)
         results.flush()
-
