@@ -156,6 +156,8 @@ def main() -> None:
     parser.add_argument("--modes", nargs="+", default=["sync"], choices=["sync", "threaded", "threaded-gil"],
                         help="synchronous (inline mapping), threaded (mapping in its own thread, BA in a child "
                              "process) and/or threaded-gil (BA in the mapping thread: solver_process=false)")
+    parser.add_argument("--mapping-backlog", type=int, default=SLAMConfig.mapping_backlog,
+                        help="threaded: keyframes being mapped before the tracker waits (slam.mapping_backlog)")
     parser.add_argument("--ba-solvers", nargs="+", default=["gtsam"], choices=list(SOLVERS),
                         help="mapping.ba_solver values to run (ruslam.slam.bundle_adjustment)")
     args = parser.parse_args()
@@ -180,7 +182,7 @@ def main() -> None:
         extract_fps = n / (time.perf_counter() - start)
         for mode, solver in itertools.product(args.modes, args.ba_solvers):
             cfg = SLAMConfig(progress=False, synchronous=mode == "sync", solver_process=mode == "threaded",
-                             max_frames=n,
+                             mapping_backlog=args.mapping_backlog, max_frames=n,
                              mapping=MappingConfig(ba_solver=solver),
                              loop=LoopConfig(enabled=not args.no_loop, global_bundle_adjustment=args.global_ba))
             profiler = cProfile.Profile() if args.profile else None

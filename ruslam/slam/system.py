@@ -177,6 +177,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
             start = time.perf_counter()
             frame = _load_frame(i, sequence, extractor, stereo, cfg)
+            keyframes.catch_up(cfg.mapping_backlog)  # after the extraction, which overlaps the mapper's work
             if frame is None:
                 skipped += 1
             elif tracker.track(frame):
@@ -185,7 +186,6 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                     kf1, tracker.initial_frame = tracker.initial_frame, None
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
-            keyframes.catch_up(cfg.mapping_backlog)
             timings[i] = time.perf_counter() - start
     finally:
         keyframes.finish()
