@@ -90,15 +90,17 @@ class LocalMapper:
         return True
 
     def _insert(self, kf: KeyFrame) -> None:
+        observed = []  # points this keyframe newly observes
         for i, p in enumerate(kf.points):
             if p is None or p.is_bad:
                 kf.points[i] = None
             elif kf not in p.observations:
                 p.add_observation(kf, i)
                 p.update_normal()
+                observed.append(p)
             else:  # created by this keyframe (stereo points)
                 self.recent.append(p)
-        update_descriptors(kf.alive_points(), self.binary)
+        update_descriptors(observed, self.binary)
         self.map.update_connections(kf)
 
     def _cull_points(self, kf: KeyFrame) -> None:
