@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import X
 
 from ruslam.slam.geometry import CHI2_2DOF
 from ruslam.slam.map import inverse_pose
@@ -204,7 +204,12 @@ def _sum_blocks(values: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
 
 def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma):
     """The same pass as a gtsam factor graph (held poses and depth-less points as tight priors: gtsam eliminates
-    NonlinearEquality's constrained noise model by QR, 3.4x slower, bench/bundle_adjustment.py)."""
+    NonlinearEquality's constrained noise model by QR, 3.4x slower, bench/bundle_adjustment.py).
+
+    The projection factors are made in C++ (`utilities.insertProjectionFactors`, one call per run of a pose's
+    observations, in the observations' order), 15k Python constructions per pass before. Its bindings pass the
+    landmark keys as floats, so points are keyed by their plain index (exact below 2^53; a symbol key is not),
+    which keeps gtsam's variable order: points before the poses' X keys."""
     oi, oj, uv, right = obs
     cal, cal_r = _cal(K), _cal(K_right) if K_right is not None else None
     body_r = _pose3(T_c0_c1) if T_c0_c1 is not None else None
@@ -219,14 +224,19 @@ def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
             graph.add(gtsam.PriorFactorPose3(X(i), values.atPose3(X(i)), hold6))
     counts = np.bincount(oj[use], minlength=len(Xw))
     for j, p in enumerate(Xw):
-        values.insert(L(j), p)
+        values.insert(j, p)
         if counts[j] < 2:
-            graph.add(gtsam.PriorFactorPoint3(L(j), p, hold3))
-    for o in np.nonzero(use)[0]:
-        camera = (cal_r, body_r) if right[o] else (cal,)
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[o], noise, X(int(oi[o])), L(int(oj[o])), *camera))
+            graph.add(gtsam.PriorFactorPoint3(j, p, hold3))
+    sel = np.nonzero(use)[0]
+    runs = np.nonzero((np.diff(oi[sel]) != 0) | (np.diff(right[sel]) != 0))[0] + 1  # same pose and camera
+    for run in np.split(sel, runs) if len(sel) else []:
+        camera = (cal_r, body_r) if right[run[0]] else (cal,)
+        gtsam.utilities.insertProjectionFactors(graph, X(int(oi[run[0]])), oj[run].astype(float),
+                                                np.ascontiguousarray(uv[run].T), noise, *camera)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
     values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    T = np.stack([inverse_pose(values.atPose3(X(i)).matrix()) for i in range(len(T))])
-    return T, np.stack([values.atPoint3(L(j)) for j in range(len(Xw))]) if len(Xw) else Xw
+    rows = gtsam.utilities.extractPose3(values)  # [P, 12]: R row-major, then t (T_wc)
+    T_wc = np.tile(np.eye(4), (len(T), 1, 1))
+    T_wc[:, :3, :3], T_wc[:, :3, 3] = rows[:, :9].reshape(-1, 3, 3), rows[:, 9:]
+    return np.stack([inverse_pose(t) for t in T_wc]), gtsam.utilities.extractPoint3(values) if len(Xw) else Xw
