@@ -16,10 +16,14 @@ def descriptor_distances(a: np.ndarray, b: np.ndarray, binary: bool) -> np.ndarr
     if binary:
         if len(a) * len(b) <= 400:  # a map point's few observations: XOR + popcount beats unpacking bits (3x)
             return np.bitwise_count(a[:, None] ^ b[None]).sum(-1, dtype=np.int32).astype(np.float32)
-        ba = np.unpackbits(a, axis=1).astype(np.float32)
-        bb = np.unpackbits(b, axis=1).astype(np.float32)
-        d = ba.sum(1)[:, None] + bb.sum(1)[None] - 2.0 * ba @ bb.T
-        return np.maximum(d, 0.0)
+        # bits as +-1: a.b = bits - 2 * hamming, one product and two in-place passes (exact integers in float32;
+        # 2.4x faster than |a| + |b| - 2 a.b over 0/1 bits, whose temporaries cost more than the product)
+        sa = np.unpackbits(a, axis=1).astype(np.float32) * 2.0 - 1.0
+        sb = np.unpackbits(b, axis=1).astype(np.float32) * 2.0 - 1.0
+        d = sa @ sb.T
+        d *= -0.5
+        d += 0.5 * sa.shape[1]
+        return d
     a = a.astype(np.float32, copy=False)
     b = b.astype(np.float32, copy=False)
     d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2.0 * a @ b.T
