@@ -133,7 +133,7 @@ class LocalMapper:
                 seen = n.alive_points()
                 if not seen:
                     continue
-                depth = np.median(transform(n.T_cw, np.stack([p.position for p in seen]))[:, 2])
+                depth = np.median(transform(n.T_cw, np.array([p.position for p in seen]))[:, 2])
                 if baseline / max(depth, 1e-9) < 0.01:
                     continue
             i1 = np.nonzero(free1)[0]
@@ -188,7 +188,7 @@ class LocalMapper:
         points = [p for p in points if not p.is_bad and kf not in p.observations]
         if not points:
             return 0
-        X = np.stack([p.position for p in points])
+        X = np.array([p.position for p in points])
         T = kf.T_cw if T_cw is None else T_cw
         Xc = transform(T, X)
         z = Xc[:, 2]
@@ -196,7 +196,7 @@ class LocalMapper:
         vis = np.nonzero((z > 0) & kf.in_image(uv))[0]
         if len(vis) == 0:
             return 0
-        desc = np.stack([points[i].descriptor for i in vis])
+        desc = np.array([points[i].descriptor for i in vis])
         ip, ik = match_in_windows(uv[vis], desc, kf.keypoints, kf.descriptors, self.cfg.fuse_radius, self.binary,
                                   self.max_distance, ratio=1.0)
         fused = 0
@@ -268,8 +268,8 @@ class LocalMapper:
                 if sel.any():
                     uv[sel] = pixels[ok[sel]]
         return {"kfs": kfs, "points": points, "fixed": np.asarray(fixed, bool), "oi": oi, "oj": oj, "uv": uv,
-                "right": orr, "poses": np.stack([k.T_cw for k in kfs]),
-                "positions": np.stack([p.position for p in points])}
+                "right": orr, "poses": np.array([k.T_cw for k in kfs]),
+                "positions": np.array([p.position for p in points])}
 
     def _solve(self, problem: dict, iterations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)

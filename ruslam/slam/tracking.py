@@ -283,7 +283,7 @@ class Tracker:
         points = sorted({p for kf in local for p in kf.points if p is not None and not p.is_bad}, key=lambda p: p.id)
         if len(points) < 15:
             return False
-        ia, ib = match_knn_ratio(np.stack([p.descriptor for p in points]), frame.descriptors, self.binary,
+        ia, ib = match_knn_ratio(np.array([p.descriptor for p in points]), frame.descriptors, self.binary,
                                  self.max_distance, self.cfg.ratio)
         if len(ia) < 15:
             return False
@@ -330,7 +330,7 @@ class Tracker:
         return position[ia[keep]], ib[keep]
 
     def _pnp(self, frame: Frame, points: list[MapPoint], kp_idx: np.ndarray) -> bool:
-        X = np.stack([p.position for p in points])
+        X = np.array([p.position for p in points])
         out = solve_pnp_ransac(X, frame.keypoints[kp_idx], frame.K, seed=self.seed + frame.index)
         if out is None:
             return False
@@ -370,19 +370,19 @@ class Tracker:
     def _search_points(self, frame: Frame, points: list[MapPoint], radius: float, count_visible=False) -> int:
         """Project map points with frame.T_cw and match them in windows; returns the number of matched points."""
         if points:
-            X = np.stack([p.position for p in points])
+            X = np.array([p.position for p in points])
             uv, z = frame.project(X)
             centre = frame.center
             rays = X - centre
             dist = np.linalg.norm(rays, axis=1)
-            normals = np.stack([p.normal for p in points])
+            normals = np.array([p.normal for p in points])
             cos = np.sum(rays * normals, 1) / np.maximum(dist, 1e-12)
             visible = (z > 0) & frame.in_image(uv) & ((cos > 0.5) | (np.abs(normals).sum(1) == 0))
             vis = np.nonzero(visible)[0]
             if count_visible:
                 for i in vis:
                     points[i].visible += 1
-            desc = np.stack([points[i].descriptor for i in vis]) if len(vis) else frame.descriptors[:0]
+            desc = np.array([points[i].descriptor for i in vis]) if len(vis) else frame.descriptors[:0]
             free = np.array([p is None for p in frame.points], bool)
             ip, ik = match_in_windows(uv[vis], desc, frame.keypoints, frame.descriptors, radius, self.binary,
                                       self.max_distance, self.cfg.window_ratio, available=free)
@@ -396,7 +396,7 @@ class Tracker:
         frame.outliers = np.zeros(len(frame), bool)
         if len(idx) < 6:
             return 0
-        X = np.stack([frame.points[i].position for i in idx])
+        X = np.array([frame.points[i].position for i in idx])
         uv_r = frame.right[idx] if self.rig is not None and frame.right is not None else None
         K_r, T_c1_c0 = (self.rig[0], inverse_pose(self.rig[1])) if self.rig is not None else (None, None)
         T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma)
