@@ -245,22 +245,32 @@ class LocalMapper:
         if not points or len(kfs) < 2:
             return None
         kidx = {k: i for i, k in enumerate(kfs)}
-        rows, kept = [], []  # (keyframe, point, keypoint, right camera) per observation; the points they refer to
-        for p in points:
-            obs = []
-            for k, i in p.observations.items():
-                if k in kidx:
-                    obs.append((kidx[k], len(kept), i, False))
-                    if self.rig is not None and k.right is not None and np.isfinite(k.right[i, 0]):
-                        obs.append((kidx[k], len(kept), i, True))
-            # a point seen once (without a stereo measurement) has no depth: leave it out, it would stall LM
-            if len(obs) >= 2:
-                rows += obs
-                kept.append(p)
-        if not rows:
+        # one row per observation by a problem keyframe, in the points' order (then, for a stereo keyframe with a
+        # right measurement, a second row right after it)
+        counts = [len(p.observations) for p in points]
+        flat = np.array([(kidx.get(k, -1), i) for p in points for k, i in p.observations.items()], int).reshape(-1, 2)
+        owner = np.repeat(np.arange(len(points)), counts)
+        inside = flat[:, 0] >= 0
+        flat, owner = flat[inside], owner[inside]
+        rep = np.ones(len(flat), int)
+        if self.rig is not None:
+            for a, k in enumerate(kfs):
+                sel = np.nonzero(flat[:, 0] == a)[0]
+                if k.right is not None and len(sel):
+                    rep[sel] += np.isfinite(k.right[flat[sel, 1], 0])
+        rows = np.repeat(np.arange(len(flat)), rep)
+        orr = np.zeros(len(rows), bool)
+        orr[1:] = rows[1:] == rows[:-1]  # the second row of a pair is the right camera's
+        owner = owner[rows]
+        # a point seen once (without a stereo measurement) has no depth: leave it out, it would stall LM
+        keep = np.bincount(owner, minlength=len(points)) >= 2
+        if not keep.any():
             return None
-        points = kept
-        oi, oj, ok, orr = (np.array(col) for col in zip(*rows, strict=True))
+        sel = keep[owner]
+        rows, orr, owner = rows[sel], orr[sel], owner[sel]
+        oi, ok = flat[rows, 0], flat[rows, 1]
+        oj = (np.cumsum(keep) - 1)[owner]
+        points = [p for p, k in zip(points, keep, strict=True) if k]
         uv = np.empty((len(oi), 2))
         for a, k in enumerate(kfs):
             for right, pixels in ((False, k.keypoints), (True, k.right)):
