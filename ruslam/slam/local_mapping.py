@@ -24,7 +24,7 @@ from ruslam.slam.geometry import (
     triangulate,
     triangulation_mask,
 )
-from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform, update_descriptors
+from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform, update_descriptors, update_normals
 
 log = logging.getLogger(__name__)
 
@@ -96,10 +96,10 @@ class LocalMapper:
                 kf.points[i] = None
             elif kf not in p.observations:
                 p.add_observation(kf, i)
-                p.update_normal()
                 observed.append(p)
             else:  # created by this keyframe (stereo points)
                 self.recent.append(p)
+        update_normals(observed)
         update_descriptors(observed, self.binary)
         self.map.update_connections(kf)
 
@@ -175,8 +175,7 @@ class LocalMapper:
         self.fuse_points(kf, candidates)
         points = kf.alive_points()
         update_descriptors(points, self.binary)
-        for p in points:
-            p.update_normal()
+        update_normals(points)
         self.map.update_connections(kf)
 
     def fuse_points(self, kf: KeyFrame, points: list[MapPoint], T_cw: np.ndarray | None = None,

@@ -26,7 +26,7 @@ import numpy as np
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
-from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform
+from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform, update_normals
 from ruslam.slam.optimization import pose_graph_optimization
 
 log = logging.getLogger(__name__)
@@ -262,8 +262,7 @@ class LoopCloser:
         kf.loop_edges.add(cand)
         cand.loop_edges.add(kf)
         self._optimize_essential_graph(kf, cand, before, corrected, corrected_by, new_links)
-        for p in self.map.points:
-            p.update_normal(force=True)
+        update_normals(self.map.points, force=True)
         if self.cfg.global_bundle_adjustment:
             kfs = [k for k in self.map.keyframes if not k.is_bad]
             fixed = np.zeros(len(kfs), bool)

@@ -165,27 +165,37 @@ class MapPoint:
         kf.points[index] = self
 
     def update_normal(self, force: bool = False) -> None:
-        """Mean viewing direction over the observing keyframes (for the viewing-angle test of the search).
-
-        Recomputed when the observing keyframes change (or `force`, after a loop correction moved the point); the
-        small moves of a local BA do not matter to a 60-degree viewing-angle test.
-        """
-        if not self.observations:
-            return
-        key = tuple(kf.id for kf in self.observations)
-        if key == self._normal_key and not force:  # called for every point of every keyframe; most are unchanged
-            return
-        self._normal_key = key
-        centres = np.array([kf.center for kf in self.observations])
-        d = self.position - centres
-        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        n = d.sum(0)
-        self.normal = n / max(float(np.sqrt(n @ n)), 1e-12)
+        update_normals([self], force)
 
     def set_normal(self, normal: np.ndarray) -> None:
         """A normal computed elsewhere (all new points of a triangulation at once) for the current observers."""
         self.normal = normal
         self._normal_key = tuple(kf.id for kf in self.observations)
+
+def update_normals(points, force: bool = False) -> None:
+    """Each point's mean viewing direction over its observing keyframes (for the viewing-angle test of the search).
+
+    Recomputed where the observing keyframes changed (or `force`, after a loop correction moved the points); the
+    small moves of a local BA do not matter to a 60-degree viewing-angle test. Points with the same number of
+    observers are done in one batch.
+    """
+    stale: dict[int, list[MapPoint]] = {}
+    for p in points:
+        key = tuple(kf.id for kf in p.observations)
+        if key and (force or key != p._normal_key):
+            p._normal_key = key
+            stale.setdefault(len(key), []).append(p)
+    centres: dict[KeyFrame, np.ndarray] = {}
+    for group in stale.values():
+        C = np.array([centres[kf] if kf in centres else centres.setdefault(kf, kf.center)
+                      for p in group for kf in p.observations]).reshape(len(group), -1, 3)
+        d = np.array([p.position for p in group])[:, None] - C
+        d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
+        n = d.sum(1)
+        n /= np.maximum(np.sqrt((n * n).sum(1)), 1e-12)[:, None]
+        for p, normal in zip(group, n, strict=True):
+            p.normal = normal
+
 
 def update_descriptors(points, binary: bool) -> None:
     """Each point's descriptor: the observation descriptor with the least median distance to the others (ORB-SLAM's
