@@ -181,7 +181,9 @@ def main() -> None:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
         for mode, solver in itertools.product(args.modes, args.ba_solvers):
+            # cProfile sees the main thread only: --profile makes each frame there (no prefetch thread)
             cfg = SLAMConfig(progress=False, synchronous=mode == "sync", solver_process=mode == "threaded",
+                             prefetch=not args.profile,
                              mapping_backlog=args.mapping_backlog, max_frames=n,
                              mapping=MappingConfig(ba_solver=solver),
                              loop=LoopConfig(enabled=not args.no_loop, global_bundle_adjustment=args.global_ba))

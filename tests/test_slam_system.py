@@ -1,6 +1,7 @@
 """The whole SLAM on exact synthetic sequences (tests/slam_fakes.py): accuracy, stereo scale, bad input, modes."""
 
 import logging
+import threading
 
 import numpy as np
 import pytest
@@ -42,6 +43,31 @@ def test_monocular_tracks_every_frame_within_one_percent(mono_runs):
 def test_synchronous_mode_is_deterministic(mono_runs):
     _, a, b = mono_runs
     assert np.array_equal(a.poses, b.poses)
+
+
+class ThreadRecordingExtractor(FakeExtractor):
+    def __init__(self, seq, fail_at=None):
+        super().__init__(seq)
+        self.threads, self.fail_at = set(), fail_at
+
+    def extract(self, image):
+        self.threads.add(threading.current_thread().name)
+        if self.fail_at is not None and int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) == self.fail_at:
+            raise RuntimeError("extractor failed on purpose")
+        return super().extract(image)
+
+
+def test_prefetch_makes_frames_in_a_worker_with_the_same_results(mono_runs):
+    seq, prefetched, _ = mono_runs  # the default: prefetch
+    inline = ThreadRecordingExtractor(seq)
+    result = run(seq, inline, SLAMConfig(progress=False, prefetch=False))
+    assert np.array_equal(result.poses, prefetched.poses)
+    assert inline.threads == {threading.main_thread().name}
+    worker = ThreadRecordingExtractor(seq)
+    run(seq, worker, SLAMConfig(progress=False, max_frames=3))
+    assert threading.main_thread().name not in worker.threads
+    with pytest.raises(RuntimeError, match="on purpose"):  # an error in the worker reaches the caller
+        run(seq, ThreadRecordingExtractor(seq, fail_at=7), SLAMConfig(progress=False))
 
 
 def test_stereo_recovers_metric_scale():

@@ -172,6 +172,7 @@ class MapPoint:
         self.normal = normal
         self._normal_key = tuple(kf.id for kf in self.observations)
 
+
 def update_normals(points, force: bool = False) -> None:
     """Each point's mean viewing direction over its observing keyframes (for the viewing-angle test of the search).
 
@@ -185,10 +186,10 @@ def update_normals(points, force: bool = False) -> None:
         if key and (force or key != p._normal_key):
             p._normal_key = key
             stale.setdefault(len(key), []).append(p)
-    centres: dict[KeyFrame, np.ndarray] = {}
+    observers = {kf for group in stale.values() for p in group for kf in p.observations}
+    centres = {kf: kf.center for kf in observers}
     for group in stale.values():
-        C = np.array([centres[kf] if kf in centres else centres.setdefault(kf, kf.center)
-                      for p in group for kf in p.observations]).reshape(len(group), -1, 3)
+        C = np.array([centres[kf] for p in group for kf in p.observations]).reshape(len(group), -1, 3)
         d = np.array([p.position for p in group])[:, None] - C
         d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
         n = d.sum(1)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +42,8 @@ class SLAMConfig:
     synchronous: bool = True
     mapping_backlog: int = 1  # threaded mode: keyframes queued or being mapped before the tracker waits for them
     solver_process: bool = True  # threaded mode: bundle adjustment in a child process (gtsam holds the GIL)
+    prefetch: bool = True  # load and extract the next frame in a background thread while this one is tracked
+    # (OpenCV and torch release the GIL; the same results, it only uses the second core)
     blas_threads: int | None = 1  # numpy/scipy/OpenCV BLAS threads during the run (None: leave as is); the SLAM's
     # matrices are small, and OpenBLAS threads that spin for a busy core made a run 2.5x slower (BENCHMARKS.md)
     seed: int = 0
@@ -173,10 +176,11 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     skipped = 0
     initialized_at = None
     blas = threadpool_limits(cfg.blas_threads, user_api="blas")  # torch's own thread pool is not BLAS here
+    frames = _frames(n, sequence, extractor, stereo, cfg)
     try:
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
             start = time.perf_counter()
-            frame = _load_frame(i, sequence, extractor, stereo, cfg)
+            frame = next(frames)
             keyframes.catch_up(cfg.mapping_backlog)  # after the extraction, which overlaps the mapper's work
             if frame is None:
                 skipped += 1
@@ -188,6 +192,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
     finally:
+        frames.close()
         keyframes.finish()
         if solver is not None:
             solver.close()
@@ -219,6 +224,25 @@ def _sensor(sequence, sensor: str) -> bool:
     if len(sequence) == 0:
         raise ValueError(f"Sequence {getattr(sequence, 'name', '')!r} has no frames.")
     return sensor == "stereo" or (sensor == "auto" and cams >= 2 and sequence.T_cam0_cam1 is not None)
+
+
+def _frames(n, sequence, extractor, stereo, cfg):
+    """Frames 0..n-1 (None for a skipped one); with `cfg.prefetch`, frame i + 1 is made in a worker thread while
+    frame i is tracked."""
+    if not cfg.prefetch:
+        for i in range(n):
+            yield _load_frame(i, sequence, extractor, stereo, cfg)
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="ruslam-frames") as pool:
+        pending = pool.submit(_load_frame, 0, sequence, extractor, stereo, cfg)
+        try:
+            for i in range(n):
+                frame = pending.result()
+                if i + 1 < n:
+                    pending = pool.submit(_load_frame, i + 1, sequence, extractor, stereo, cfg)
+                yield frame
+        finally:  # stopped early (an error in tracking): a frame not yet started is not made
+            pending.cancel()
 
 
 def _load_frame(i, sequence, extractor, stereo, cfg) -> Frame | None:
