@@ -157,6 +157,35 @@ def test_matching_binary_and_float():
     assert len(i1) == 60 and np.all(i1 == i2)
 
 
+def brute_force_knn(a, b, mask, max_distance, ratio, mutual):
+    """One pair at a time: the 2-NN ratio test and mutual check over the allowed pairs, lowest index on ties."""
+    d = [[bin(int.from_bytes((a[r] ^ b[c]).tobytes(), "little")).count("1") if mask[r, c] else None
+          for c in range(len(b))] for r in range(len(a))]
+    out = []
+    for r, row in enumerate(d):
+        cand = sorted((v, c) for c, v in enumerate(row) if v is not None)
+        if not cand or cand[0][0] > max_distance or (len(cand) > 1 and not cand[0][0] < ratio * cand[1][0]):
+            continue
+        c = cand[0][1]
+        col = sorted((d[q][c], q) for q in range(len(a)) if d[q][c] is not None)
+        if not mutual or col[0][1] == r:
+            out.append((r, c))
+    return out
+
+
+@pytest.mark.parametrize("mutual", [True, False])
+def test_masked_binary_matching_equals_brute_force_with_ties(mutual):
+    rng = np.random.default_rng(3)
+    words = rng.integers(0, 256, (12, 32), dtype=np.uint8)  # few distinct descriptors: many equal distances
+    a = words[rng.integers(0, 12, 70)] ^ (rng.random((70, 32)) < 0.01).astype(np.uint8)
+    b = words[rng.integers(0, 12, 80)] ^ (rng.random((80, 32)) < 0.01).astype(np.uint8)
+    mask = rng.random((70, 80)) < 0.2
+    i1, i2 = match_knn_ratio(a, b, binary=True, max_distance=64, ratio=0.9, mutual=mutual, mask=mask)
+    expected = brute_force_knn(a, b, mask, 64, 0.9, mutual)
+    assert len(expected) > 5
+    assert list(zip(i1.tolist(), i2.tolist(), strict=True)) == expected
+
+
 def test_window_search_respects_radius_and_uniqueness():
     rng = np.random.default_rng(8)
     kp = rng.uniform(0, 400, (200, 2))
