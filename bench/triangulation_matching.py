@@ -1,6 +1,7 @@
 """The matching step of triangulation (one keyframe against one neighbour), three ways in one process on the same
-data: session 6's (epipolar distance matrix, then the masked dense search), today's (`epipolar_mask`, normalised
-lines, then the same dense search), and scoring only the pairs inside the band (tried, not kept).
+data: session 6's (epipolar distance matrix, then the masked dense search), session 7's (`epipolar_mask`, normalised
+lines, then the same dense search), and today's `match_knn_ratio` (binary descriptors: only the pairs inside the band
+scored, session 13; float: session 7's). One BLAS thread, as in the SLAM (`slam.blas_threads`).
 
     nice .venv/bin/python bench/triangulation_matching.py [--keypoints 700 1000 2000] [--reps 20]
 
@@ -14,8 +15,9 @@ import argparse
 import time
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from ruslam.slam.feature_matching import descriptor_distances, match_knn_ratio, paired_distances
+from ruslam.slam.feature_matching import descriptor_distances, match_knn_ratio
 from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, pose_matrix, project
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
@@ -36,28 +38,22 @@ def old_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
     return i, best[i]
 
 
+def dense_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
+    """Session 7: every pair scored, then the mask applied (what `match_knn_ratio` still does for float)."""
+    d = descriptor_distances(d1, d2, binary)
+    np.putmask(d, ~epipolar_mask(F, x1, x2, px), np.inf)
+    rows = np.arange(len(d))
+    best = np.argmin(d, axis=1)
+    b1 = d[rows, best]
+    keep = (b1 <= max_distance) & (np.argmin(d, axis=0)[best] == rows)
+    d[rows, best] = np.inf
+    keep &= b1 < ratio * d.min(axis=1)
+    i = np.nonzero(keep)[0]
+    return i, best[i]
+
+
 def new_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
     return match_knn_ratio(d1, d2, binary, max_distance, ratio, mask=epipolar_mask(F, x1, x2, px))
-
-
-def pair_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
-    """Only the band's pairs scored: per row best and second best, per column best (mutual), by sorting."""
-    i1, i2 = np.nonzero(epipolar_mask(F, x1, x2, px))
-    d = paired_distances(d1[i1], d2[i2], binary)
-    order = np.lexsort((i2, d, i1))
-    r, c, dd = i1[order], i2[order], d[order]
-    starts = np.nonzero(np.r_[True, r[1:] != r[:-1]])[0]
-    has_second = np.append(starts[1:], len(r)) - starts > 1
-    second = np.full(len(starts), np.inf, np.float32)
-    second[has_second] = dd[starts[has_second] + 1]
-    rows, best, b1 = r[starts], c[starts], dd[starts]
-    order = np.lexsort((i1, d, i2))
-    cols, crow = i2[order], i1[order]
-    first = np.r_[True, cols[1:] != cols[:-1]]
-    col_best = np.full(len(d2), -1)
-    col_best[cols[first]] = crow[first]
-    keep = (b1 <= max_distance) & (b1 < ratio * second) & (col_best[best] == rows)
-    return rows[keep], best[keep]
 
 
 def views(n, binary, rng):
@@ -84,8 +80,9 @@ def main() -> None:
     ap.add_argument("--keypoints", type=int, nargs="+", default=[700, 1000, 2000])
     ap.add_argument("--reps", type=int, default=20)
     args = ap.parse_args()
+    threadpool_limits(1, user_api="blas")
     rng = np.random.default_rng(0)
-    methods = {"session 6": old_match, "epipolar_mask": new_match, "band pairs": pair_match}
+    methods = {"session 6": old_match, "session 7": dense_match, "match_knn_ratio": new_match}
     print(f"median ms of {args.reps} alternating runs; speedup against session 6; same = identical matches")
     print("descriptors  keypoints  " + "  ".join(f"{m:>13s}" for m in methods) + "  speedup  matches  same")
     for binary in (True, False):
@@ -102,7 +99,8 @@ def main() -> None:
             ms = {m: 1e3 * float(np.median(t)) for m, t in times.items()}
             print(f"{'ORB 256 bit' if binary else 'float 64':11s}  {n:9d}  "
                   + "  ".join(f"{ms[m]:13.1f}" for m in methods)
-                  + f"  {ms['session 6'] / ms['epipolar_mask']:6.1f}x  {len(outs[1][0]):7d}  {same}")
+                  + f"  {ms['session 6'] / ms['match_knn_ratio']:6.1f}x  {len(outs[1][0]):7d}  {same}")
+
 
 if __name__ == "__main__":
     main()
