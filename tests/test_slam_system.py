@@ -70,6 +70,27 @@ def test_prefetch_makes_frames_in_a_worker_with_the_same_results(mono_runs):
         run(seq, ThreadRecordingExtractor(seq, fail_at=7), SLAMConfig(progress=False))
 
 
+def test_a_constructor_error_leaves_no_solver_process_behind(monkeypatch):
+    from ruslam.slam import system
+
+    made = []
+
+    class RecordedSolver(system.SolverProcess):
+        def __init__(self, *args):
+            super().__init__(*args)
+            made.append(self)
+
+    def failing_tracker(*args):
+        raise RuntimeError("tracker failed on purpose")
+
+    monkeypatch.setattr(system, "SolverProcess", RecordedSolver)
+    monkeypatch.setattr(system, "Tracker", failing_tracker)
+    seq = arc(5)
+    with pytest.raises(RuntimeError, match="on purpose"):
+        run(seq, FakeExtractor(seq), SLAMConfig(progress=False, synchronous=False))
+    assert len(made) == 1 and made[0].process.poll() is not None  # the child was ended, not left running
+
+
 def test_stereo_recovers_metric_scale():
     seq = arc(stereo=True)
     result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))

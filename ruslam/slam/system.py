@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack, closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,24 +161,27 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
     binary = bool(getattr(extractor, "binary", False))
     rig = (sequence.cameras[1].K, np.asarray(sequence.T_cam0_cam1, np.float64)) if stereo else None
     atlas = Atlas()
-    solver = SolverProcess(cfg.blas_threads) if not cfg.synchronous and cfg.solver_process else None
-    mapper = LocalMapper(atlas, cfg.mapping, binary, rig, solver or bundle_adjustment)
-    loop_closer = LoopCloser(atlas, mapper, cfg.loop, binary, stereo, cfg.seed, cfg.pair_matcher)
-
-    def process_keyframe(kf) -> None:  # local mapping, then loop closing on what it mapped
-        if mapper.process(kf):
-            loop_closer.process(kf)
-
-    keyframes = (KeyframePipeline if cfg.synchronous else ThreadedKeyframePipeline)(process_keyframe)
-    tracker = Tracker(atlas, keyframes, mapper.bundle_adjust, loop_closer.database, cfg.tracking, binary, rig,
-                      cfg.seed, cfg.pair_matcher)
     n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
     timings = np.zeros(n)
     skipped = 0
     initialized_at = None
-    blas = threadpool_limits(cfg.blas_threads, user_api="blas")  # torch's own thread pool is not BLAS here
-    frames = _frames(n, sequence, extractor, stereo, cfg)
-    try:
+    with ExitStack() as cleanup:  # undone in reverse order, also when a constructor below raises
+        solver = None
+        if not cfg.synchronous and cfg.solver_process:
+            solver = cleanup.enter_context(closing(SolverProcess(cfg.blas_threads)))
+        cleanup.enter_context(threadpool_limits(cfg.blas_threads, user_api="blas"))  # torch's threads are not BLAS
+        mapper = LocalMapper(atlas, cfg.mapping, binary, rig, solver or bundle_adjustment)
+        loop_closer = LoopCloser(atlas, mapper, cfg.loop, binary, stereo, cfg.seed, cfg.pair_matcher)
+
+        def process_keyframe(kf) -> None:  # local mapping, then loop closing on what it mapped
+            if mapper.process(kf):
+                loop_closer.process(kf)
+
+        keyframes = (KeyframePipeline if cfg.synchronous else ThreadedKeyframePipeline)(process_keyframe)
+        cleanup.callback(keyframes.finish)
+        tracker = Tracker(atlas, keyframes, mapper.bundle_adjust, loop_closer.database, cfg.tracking, binary, rig,
+                          cfg.seed, cfg.pair_matcher)
+        frames = cleanup.enter_context(closing(_frames(n, sequence, extractor, stereo, cfg)))
         for i in tqdm(range(n), desc=f"SLAM {getattr(sequence, 'name', '')}", disable=not cfg.progress):
             start = time.perf_counter()
             frame = next(frames)
@@ -191,12 +195,6 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
-    finally:
-        frames.close()
-        keyframes.finish()
-        if solver is not None:
-            solver.close()
-        blas.restore_original_limits()
     records, poses, map_frames = atlas.trajectory()
     if not records:
         log.warning("SLAM on %s: no frame was tracked (initialisation never succeeded on %d frames, %d skipped).",
