@@ -164,9 +164,6 @@ class MapPoint:
         self.observations[kf] = index
         kf.points[index] = self
 
-    def update_normal(self, force: bool = False) -> None:
-        update_normals([self], force)
-
     def set_normal(self, normal: np.ndarray) -> None:
         """A normal computed elsewhere (all new points of a triangulation at once) for the current observers."""
         self.normal = normal

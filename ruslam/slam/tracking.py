@@ -23,7 +23,7 @@ import numpy as np
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
-from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, scale_translation, transform
+from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
 log = logging.getLogger(__name__)
@@ -450,12 +450,14 @@ class Tracker:
             idx = idx[(kf.depth[idx] < limit) | (np.arange(len(idx)) < 100)]
         Kinv = np.linalg.inv(kf.K)
         T_wc = inverse_pose(kf.T_cw)
+        new = []
         for i in idx:
             xc = Kinv @ np.r_[kf.keypoints[i], 1.0] * kf.depth[i]
             p = MapPoint(T_wc[:3, :3] @ xc + T_wc[:3, 3], kf.descriptors[i], kf)
             p.add_observation(kf, int(i))
-            p.update_normal()
             self.map.add_point(p)
+            new.append(p)
+        update_normals(new)
 
     # --- relocalisation ----------------------------------------------------------------------------------------
     def _relocalize(self, frame: Frame, in_map: Map) -> bool:
