@@ -216,3 +216,25 @@ def test_solver_process_solves_in_a_child_as_in_process():
             solver(noisy, fixed, Xn, oi, oj, ouv, K)
     finally:
         solver.close()
+
+
+@pytest.mark.parametrize("solver", ["gtsam", "schur"])
+def test_bundle_adjustment_stops_between_iterations_when_asked(solver):
+    """ORB-SLAM's interrupted local BA: a stop request is honoured before the next LM iteration."""
+    _, noisy, _, Xn, oi, oj, ouv, _ = _ba_problem(stereo=False)
+    fixed = np.array([True, True, False, False, False])
+    args = (noisy, fixed, Xn, oi, oj, ouv, K)
+    T0, X0, _ = bundle_adjustment(*args, solver=solver, should_stop=lambda: True)
+    assert np.allclose(T0, noisy) and np.allclose(X0, Xn)  # stopped before the first iteration: nothing moved
+    checks = []
+
+    def after_one():
+        checks.append(1)
+        return len(checks) > 1
+
+    T1, X1, _ = bundle_adjustment(*args, solver=solver, should_stop=after_one)
+    T_full, X_full, _ = bundle_adjustment(*args, solver=solver)
+    assert not np.allclose(X1, Xn) and not np.allclose(X1, X_full)  # one iteration: moved, but not converged
+    free = ~fixed
+    # the free poses after one iteration are between the start and the full solution
+    assert np.linalg.norm(T1[free] - T_full[free]) < np.linalg.norm(noisy[free] - T_full[free])

@@ -33,14 +33,17 @@ def bundle_adjustment(
     poses: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray,
     obs_uv: np.ndarray, K: np.ndarray, obs_right: np.ndarray | None = None, K_right: np.ndarray | None = None,
     T_c0_c1: np.ndarray | None = None, iterations: tuple[int, int] = (5, 10), chi2: float = CHI2_2DOF,
-    sigma: float = 1.0, solver: str = "gtsam",
+    sigma: float = 1.0, solver: str = "gtsam", should_stop=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Huber-robust BA of keyframe poses T_cw [P, 4, 4] and points [M, 3] from observations [O].
 
     `fixed` [P] marks poses held constant (the keyframes that see local points from outside the local window; the
     first pose when none is). `obs_right` [O] marks observations made by the right camera of a stereo rig
     (`T_c0_c1`, `K_right`). A point left with fewer than two measurements in a pass has no depth and is held.
-    `sigma` is the keypoint noise in pixels. Returns (poses, points, inlier mask over observations).
+    `sigma` is the keypoint noise in pixels. `should_stop` (a callable, optional) is checked before each LM
+    iteration: when it turns true the solve returns what it has and skips the second pass (ORB-SLAM's interrupted
+    local BA; the threaded mode's solver child sets it when the tracker wants a keyframe). Returns (poses, points,
+    inlier mask over observations).
     """
     if solver not in SOLVERS:
         raise ValueError(f"mapping.ba_solver must be one of {SOLVERS}, got {solver!r}.")
@@ -56,7 +59,9 @@ def bundle_adjustment(
     inlier = np.ones(len(obs_pose), bool)
     T, Xw = poses.copy(), np.asarray(points, float).copy()
     for stage, iters in enumerate(iterations):
-        T, Xw = solve(T, fixed, Xw, obs, inlier, K, K_right, T_c0_c1, iters, sigma)
+        T, Xw = solve(T, fixed, Xw, obs, inlier, K, K_right, T_c0_c1, iters, sigma, should_stop)
+        if should_stop is not None and should_stop():  # interrupted: no second pass (ORB-SLAM)
+            break
         if stage < len(iterations) - 1:
             inlier &= observation_chi2(T, Xw, obs, K, K_right, T_c0_c1) < chi2
     T[fixed] = poses[fixed]
@@ -97,7 +102,7 @@ def observation_chi2(T, Xw, obs, K, K_right=None, T_c0_c1=None) -> np.ndarray:
     return np.where(z > 1e-6, np.sum(res**2, 1), np.inf)
 
 
-def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma):
+def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma, should_stop=None):
     """`iterations` LM steps over the observations in `use` (numpy, points eliminated by the Schur complement)."""
     oi, oj = obs[0], obs[1]
     M = len(Xw)
@@ -122,6 +127,8 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
     cost, res, Jc, Jx, w = cost_and_terms(T, Xw)
     lam = 1e-5  # gtsam's LM schedule: lambda * I, x10 on a failed step, /10 on a good one
     for _ in range(iterations):
+        if should_stop is not None and should_stop():
+            break
         wJc, wJx = w[:, None, None] * Jc, w[:, None, None] * Jx
         Hcc, gc = np.zeros((nf, 6, 6)), np.zeros((nf, 6))
         for i in np.nonzero(~fixed)[0]:  # one product per free pose
@@ -202,7 +209,7 @@ def _sum_blocks(values: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(flat, weights=values.reshape(len(values), -1).ravel(), minlength=n * size).reshape(n, *shape)
 
 
-def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma):
+def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma, should_stop=None):
     """The same pass as a gtsam factor graph (held poses and depth-less points as tight priors: gtsam eliminates
     NonlinearEquality's constrained noise model by QR, 3.4x slower, bench/bundle_adjustment.py).
 
@@ -235,7 +242,17 @@ def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
                                                 np.ascontiguousarray(uv[run].T), noise, *camera)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
-    values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    if should_stop is None:
+        values = opt.optimize()
+    else:  # one iteration at a time, with gtsam's own convergence test, so a stop request is seen between them
+        while opt.iterations() < iterations and not should_stop():
+            before = opt.error()
+            opt.iterate()
+            if gtsam.checkConvergence(params.getRelativeErrorTol(), params.getAbsoluteErrorTol(), params.getErrorTol(),
+                                      before, opt.error()):
+                break
+        values = opt.values()
     rows = gtsam.utilities.extractPose3(values)  # [P, 12]: R row-major, then t (T_wc)
     T_wc = np.tile(np.eye(4), (len(T), 1, 1))
     T_wc[:, :3, :3], T_wc[:, :3, 3] = rows[:, :9].reshape(-1, 3, 3), rows[:, 9:]

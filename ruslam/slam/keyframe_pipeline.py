@@ -28,6 +28,9 @@ class KeyframePipeline:
     def idle(self) -> bool:
         return True
 
+    def interrupt(self) -> None:
+        """Ask a running local BA to stop early (ORB-SLAM's InterruptBA); nothing runs inline."""
+
     def catch_up(self, backlog: int) -> None:
         """Wait until at most `backlog` keyframes are queued or being processed (nothing to wait for inline)."""
 
@@ -42,8 +45,9 @@ class ThreadedKeyframePipeline(KeyframePipeline):
     frames: a tracker far ahead of its mapper tracks against a map without the newest points and gets lost.
     """
 
-    def __init__(self, process: Callable[[KeyFrame], None]):
+    def __init__(self, process: Callable[[KeyFrame], None], interrupt: Callable[[], None] | None = None):
         super().__init__(process)
+        self.interrupt = interrupt or (lambda: None)
         self.queue: queue.Queue[KeyFrame | None] = queue.Queue()
         self.pending = 0  # keyframes queued or being processed
         self.done = threading.Condition()

@@ -9,7 +9,9 @@ re-import the caller's main script in the child, torch included: 590 MB resident
 
 from __future__ import annotations
 
+import os
 import pickle
+import signal
 import subprocess
 import sys
 import threading
@@ -40,6 +42,12 @@ class SolverProcess:
             raise RuntimeError(f"Bundle adjustment failed in the solver process: {result}")
         return result
 
+    def interrupt(self) -> None:
+        """Ask the solve in flight to return after its current LM iteration (ORB-SLAM's InterruptBA: the tracker
+        wants a keyframe); nothing when the child is idle."""
+        if self.lock.locked() and self.process.poll() is None:
+            os.kill(self.process.pid, signal.SIGUSR1)
+
     def close(self) -> None:
         if self.process.poll() is None:
             self.process.stdin.close()  # the child ends at end of input
@@ -59,6 +67,8 @@ def main() -> None:
 
     if len(sys.argv) > 1:
         threadpool_limits(int(sys.argv[1]), user_api="blas")
+    stop = threading.Event()  # set by SIGUSR1 (`SolverProcess.interrupt`), cleared for each problem
+    signal.signal(signal.SIGUSR1, lambda *_: stop.set())
     requests, results = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # a print or log line must never land in the result pipe
     while True:
@@ -66,8 +76,9 @@ def main() -> None:
             args, kwargs = pickle.load(requests)
         except EOFError:
             return
+        stop.clear()
         try:
-            reply = (True, bundle_adjustment(*args, **kwargs))
+            reply = (True, bundle_adjustment(*args, should_stop=stop.is_set, **kwargs))
         except Exception as err:  # noqa: BLE001 (sent to the parent, which raises it)
             reply = (False, f"{type(err).__name__}: {err}")
         pickle.dump(reply, results, protocol=pickle.HIGHEST_PROTOCOL)

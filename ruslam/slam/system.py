@@ -177,7 +177,8 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
             if mapper.process(kf):
                 loop_closer.process(kf)
 
-        keyframes = (KeyframePipeline if cfg.synchronous else ThreadedKeyframePipeline)(process_keyframe)
+        keyframes = (KeyframePipeline(process_keyframe) if cfg.synchronous else
+                     ThreadedKeyframePipeline(process_keyframe, solver.interrupt if solver is not None else None))
         cleanup.callback(keyframes.finish)
         tracker = Tracker(atlas, keyframes, mapper.bundle_adjust, loop_closer.database, cfg.tracking, binary, rig,
                           cfg.seed, cfg.pair_matcher)

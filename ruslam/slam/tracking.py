@@ -425,7 +425,10 @@ class Tracker:
         weak = tracked < ratio * ref_points or need_close
         # ORB-SLAM inserts when local mapping is idle; run inline, mapping is always idle and every frame would
         # become a keyframe, so "idle" also needs kf_min_frames since the last one (or very weak tracking)
-        allowed = since >= c.kf_max_frames or (self.keyframes.idle() and since >= c.kf_min_frames)
+        idle = self.keyframes.idle()
+        if weak and not idle and since >= c.kf_min_frames:
+            self.keyframes.interrupt()
+        allowed = since >= c.kf_max_frames or (idle and since >= c.kf_min_frames)
         urgent = tracked < c.kf_urgent_ratio * ref_points or tracked < c.kf_min_tracked
         return bool((allowed and weak or urgent) and tracked > 15)
 
