@@ -24,24 +24,20 @@ K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 
 
 def old_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
+    """Session 6: an epipolar distance matrix, then the masked dense search."""
     lines = np.c_[x1, np.ones(len(x1))] @ F.T
     dist = np.abs(lines[:, :2] @ x2.T + lines[:, 2:3]) / np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
-    d = descriptor_distances(d1, d2, binary)
-    np.putmask(d, ~(dist < px), np.inf)
-    rows = np.arange(len(d))
-    best = np.argmin(d, axis=1)
-    b1 = d[rows, best]
-    keep = (b1 <= max_distance) & (np.argmin(d, axis=0)[best] == rows)
-    d[rows, best] = np.inf
-    keep &= b1 < ratio * d.min(axis=1)
-    i = np.nonzero(keep)[0]
-    return i, best[i]
+    return masked_dense_search(descriptor_distances(d1, d2, binary), dist < px, max_distance, ratio)
 
 
 def dense_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
     """Session 7: every pair scored, then the mask applied (what `match_knn_ratio` still does for float)."""
-    d = descriptor_distances(d1, d2, binary)
-    np.putmask(d, ~epipolar_mask(F, x1, x2, px), np.inf)
+    return masked_dense_search(descriptor_distances(d1, d2, binary), epipolar_mask(F, x1, x2, px), max_distance, ratio)
+
+
+def masked_dense_search(d, mask, max_distance, ratio):
+    """Mutual 2-NN ratio search over a dense distance matrix with the pairs outside `mask` removed."""
+    np.putmask(d, ~mask, np.inf)
     rows = np.arange(len(d))
     best = np.argmin(d, axis=1)
     b1 = d[rows, best]

@@ -47,7 +47,7 @@ class ThreadedKeyframePipeline(KeyframePipeline):
 
     def __init__(self, process: Callable[[KeyFrame], None], interrupt: Callable[[], None] | None = None):
         super().__init__(process)
-        self.interrupt = interrupt or (lambda: None)
+        self.interrupt_ba = interrupt  # e.g. `SolverProcess.interrupt`; None: the BA runs to its end
         self.queue: queue.Queue[KeyFrame | None] = queue.Queue()
         self.pending = 0  # keyframes queued or being processed
         self.done = threading.Condition()
@@ -62,6 +62,10 @@ class ThreadedKeyframePipeline(KeyframePipeline):
 
     def idle(self) -> bool:
         return self.pending == 0
+
+    def interrupt(self) -> None:
+        if self.interrupt_ba is not None and not self.idle():
+            self.interrupt_ba()
 
     def catch_up(self, backlog: int) -> None:
         with self.done:
