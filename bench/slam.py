@@ -158,7 +158,7 @@ def main() -> None:
                              "process) and/or threaded-gil (BA in the mapping thread: solver_process=false)")
     parser.add_argument("--mapping-backlog", type=int, default=SLAMConfig.mapping_backlog,
                         help="threaded: keyframes being mapped before the tracker waits (slam.mapping_backlog)")
-    parser.add_argument("--ba-solvers", nargs="+", default=["gtsam"], choices=list(SOLVERS),
+    parser.add_argument("--ba-solvers", nargs="+", default=[MappingConfig.ba_solver], choices=list(SOLVERS),
                         help="mapping.ba_solver values to run (ruslam.slam.bundle_adjustment)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import L, X
 
-from ruslam.slam.bundle_adjustment import _reduced_camera_system, bundle_adjustment
+from ruslam.slam.bundle_adjustment import SOLVERS, _reduced_camera_system, bundle_adjustment
 from ruslam.slam.geometry import pose_matrix, project
 from ruslam.slam.map import inverse_pose
 from ruslam.slam.optimization import optimize_pose, pose_graph_optimization, se3_exp
@@ -80,11 +80,12 @@ def _rmse(poses, points, oi, oj, ouv, orr):
     return np.sqrt(np.mean(err))
 
 
-def test_local_bundle_adjustment_lowers_reprojection_error():
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_local_bundle_adjustment_lowers_reprojection_error(solver):
     poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=False)
     fixed = np.array([True, True, False, False, False])  # two fixed poses fix the monocular gauge (and scale)
     before = _rmse(noisy, Xn, oi, oj, ouv, orr)
-    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K)
+    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K, solver=solver)
     after = _rmse(P, pts, oi, oj, ouv, orr)
     assert before > 5.0 and after < 0.8  # noise is 0.5 px per axis: ~0.7 px is the floor
     assert inl.mean() > 0.97
@@ -92,10 +93,23 @@ def test_local_bundle_adjustment_lowers_reprojection_error():
     assert np.abs(P[4][:3, 3] - poses[4][:3, 3]).max() < 0.02
 
 
-def test_stereo_bundle_adjustment_uses_right_camera():
+def test_schur_solver_takes_a_free_pose_without_observations():
+    """A free keyframe whose observations were all dropped couples no point (seen on TUM fr3 cabinet): it stays
+    where it is, and the points still move."""
+    poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=False)
+    keep = oi != 4
+    fixed = np.array([True, True, True, True, False])
+    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi[keep], oj[keep], ouv[keep], K, solver="schur")
+    np.testing.assert_array_equal(P, noisy)
+    obs = oi[keep], oj[keep], ouv[keep], orr[keep]
+    assert _rmse(P, pts, *obs) < 0.9 * _rmse(noisy, Xn, *obs)
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_stereo_bundle_adjustment_uses_right_camera(solver):
     poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=True)
     fixed = np.array([True, False, False, False, False])
-    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K, orr, K, T_C0_C1)
+    P, pts, inl = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K, orr, K, T_C0_C1, solver=solver)
     assert _rmse(P, pts, oi, oj, ouv, orr) < 0.8
     # metric scale is observable through the baseline: the last pose lands on the truth
     assert np.abs(P[4][:3, 3] - poses[4][:3, 3]).max() < 0.02

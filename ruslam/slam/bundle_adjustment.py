@@ -3,15 +3,15 @@
 Two solvers of the same problem (Huber kernel on projections, held keyframes, ORB-SLAM's two passes with the
 chi2 > 5.991 observations dropped in between):
 
-- ``gtsam`` (default, ``mapping.ba_solver``): the graph in gtsam's Levenberg-Marquardt; one Python call per factor
-  to build it, and the GIL held while it solves.
+- ``gtsam`` (default, ``mapping.ba_solver``): the graph in gtsam's Levenberg-Marquardt; gtsam builds and
+  eliminates it factor by factor, and holds the GIL while it solves.
 - ``schur``: Levenberg-Marquardt in numpy on the reduced camera system (the points eliminated by the Schur
   complement, the 3x3 point blocks inverted all at once), with gtsam's schedule (lambda * I from 1e-5, x10 / 10,
-  tolerances 1e-5). Every step is a vectorised array operation: ~5x faster than gtsam on a local BA of 15k
-  observations, and numpy releases the GIL while it runs (a threaded mapper overlaps tracking). Its first version
-  reached gtsam's costs (median ratio 1.000 over a DEV run's local BAs), but the small differences change which grid
-  variants drift (BENCHMARKS.md), so it is not the default yet (with Marquardt's lambda * diag(H), XFeat drifted
-  on DEV `lowtex`: 0.2 % -> 2.3-3.8 % of the path).
+  tolerances 1e-5). Every step is a vectorised array operation: ~3x faster than gtsam on the SLAM's local BAs, and
+  numpy releases the GIL while it runs. It ends where gtsam does (final cost ratio 0.93-1.01, median 1.000, over
+  the local BAs of a TUM run) and gives the same robustness-grid results, but the SLAM on the real TUM fr3 cabinet
+  keyframes is chaotic in such differences: there it loses the track at frame 44 (69 % of the frames, 3 maps,
+  against gtsam's 93 % in one map), so gtsam stays the default (BENCHMARKS.md, session 14).
 
 Poses in and out are 4x4 ``T_cw``; held poses come back exactly as given.
 """
@@ -206,7 +206,7 @@ def _sum_blocks(values: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
     shape = values.shape[1:]
     size = int(np.prod(shape))
     flat = (index[:, None] * size + np.arange(size)).ravel()
-    return np.bincount(flat, weights=values.reshape(len(values), -1).ravel(), minlength=n * size).reshape(n, *shape)
+    return np.bincount(flat, weights=values.reshape(len(values), size).ravel(), minlength=n * size).reshape(n, *shape)
 
 
 def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma, should_stop=None):
