@@ -3,12 +3,12 @@
 Two solvers of the same problem (Huber kernel on projections, held keyframes, ORB-SLAM's two passes with the
 chi2 > 5.991 observations dropped in between):
 
-- ``gtsam`` (default, ``mapping.ba_solver``): the graph in gtsam's Levenberg-Marquardt; gtsam builds and
-  eliminates it factor by factor, and holds the GIL while it solves.
+- ``gtsam`` (default, ``mapping.ba_solver``): the graph in gtsam's Levenberg-Marquardt, eliminated points first (the
+  Schur order); gtsam holds the GIL while it solves.
 - ``schur``: Levenberg-Marquardt in numpy on the reduced camera system (the points eliminated by the Schur
   complement, the 3x3 point blocks inverted all at once), with gtsam's schedule (lambda * I from 1e-5, x10 / 10,
-  tolerances 1e-5). Every step is a vectorised array operation: ~3x faster than gtsam on the SLAM's local BAs, and
-  numpy releases the GIL while it runs. It ends where gtsam does (final cost ratio 0.93-1.01, median 1.000, over
+  tolerances 1e-5). Every step is a vectorised array operation: ~2.5x faster than gtsam on the SLAM's local BAs,
+  and numpy releases the GIL while it runs. It ends where gtsam does (final cost ratio 0.93-1.01, median 1.000, over
   the local BAs of a TUM run) and gives the same robustness-grid results, but the SLAM on the real TUM fr3 cabinet
   keyframes is chaotic in such differences: there it loses the track at frame 44 (69 % of the frames, 3 maps,
   against gtsam's 93 % in one map), so gtsam stays the default (BENCHMARKS.md, session 14).
@@ -216,7 +216,7 @@ def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
     The projection factors are made in C++ (`utilities.insertProjectionFactors`, one call per run of a pose's
     observations, in the observations' order), 15k Python constructions per pass before. Its bindings pass the
     landmark keys as floats, so points are keyed by their plain index (exact below 2^53; a symbol key is not),
-    which keeps gtsam's variable order: points before the poses' X keys."""
+    which keeps gtsam's variable order: points before the poses' X keys, the elimination order given to it."""
     oi, oj, uv, right = obs
     cal, cal_r = _cal(K), _cal(K_right) if K_right is not None else None
     body_r = _pose3(T_c0_c1) if T_c0_c1 is not None else None
@@ -242,6 +242,13 @@ def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
                                                 np.ascontiguousarray(uv[run].T), noise, *camera)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
+    # the points first, then the poses (the keys' order): the Schur complement's elimination, which gtsam's COLAMD
+    # does not find by itself; sequential Cholesky on it is 1.3x faster per pass (BENCHMARKS.md, session 14)
+    ordering = gtsam.Ordering()
+    for key in sorted(values.keys()):
+        ordering.push_back(key)
+    params.setOrdering(ordering)
+    params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     if should_stop is None:
         values = opt.optimize()
