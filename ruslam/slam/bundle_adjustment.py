@@ -9,9 +9,10 @@ chi2 > 5.991 observations dropped in between):
   complement, the 3x3 point blocks inverted all at once), with gtsam's schedule (lambda * I from 1e-5, x10 / 10,
   tolerances 1e-5). Every step is a vectorised array operation: ~2.5x faster than gtsam on the SLAM's local BAs,
   and numpy releases the GIL while it runs. It ends where gtsam does (final cost ratio 0.93-1.01, median 1.000, over
-  the local BAs of a TUM run) and gives the same robustness-grid results, but the SLAM on the real TUM fr3 cabinet
-  keyframes is chaotic in such differences: there it loses the track at frame 44 (69 % of the frames, 3 maps,
-  against gtsam's 93 % in one map), so gtsam stays the default (BENCHMARKS.md, session 14).
+  the local BAs of a TUM run) and tracks every robustness-grid variant as gtsam does (APE within the runs'
+  scatter), but the SLAM on the real TUM fr3 cabinet keyframes is chaotic in such differences: there it loses the
+  track at frame 44 (69 % of the frames, 3 maps, against gtsam's 93 % in one map), so gtsam stays the default
+  (BENCHMARKS.md, session 14).
 
 Poses in and out are 4x4 ``T_cw``; held poses come back exactly as given.
 """
