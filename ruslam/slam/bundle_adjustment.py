@@ -245,10 +245,7 @@ def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
     params.setMaxIterations(iterations)
     # the points first, then the poses (the keys' order): the Schur complement's elimination, which gtsam's COLAMD
     # does not find by itself; sequential Cholesky on it is 1.3x faster per pass (BENCHMARKS.md, session 14)
-    ordering = gtsam.Ordering()
-    for key in sorted(values.keys()):
-        ordering.push_back(key)
-    params.setOrdering(ordering)
+    params.setOrdering(gtsam.Ordering(sorted(values.keys())))
     params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     if should_stop is None:
