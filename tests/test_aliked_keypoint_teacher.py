@@ -1,3 +1,5 @@
+"""ALIKED as the keypoint teacher: its score map pooled into the 65-cell layout the student's head decodes."""
+
 import numpy as np
 import pytest
 import torch

@@ -24,7 +24,6 @@ EPS = 1e-6
 
 def pool_score_map(score: torch.Tensor, nms_radius: int = 2) -> torch.Tensor:
     """Score map [B, 1, H, W] in [0, 1] (H, W multiples of 8) -> log target distribution [B, 65, H/8, W/8]."""
-    b, _, h, w = score.shape
     peaks = simple_nms(score[:, 0], nms_radius)[:, None]  # non-maxima zeroed
     cells = F.pixel_unshuffle(peaks, STRIDE)  # [B, 64, h, w], channel 8*row + col as the keypoint head
     dustbin = 1.0 - cells.amax(dim=1, keepdim=True)
