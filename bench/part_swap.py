@@ -1,0 +1,70 @@
+"""Which part separates UWNet/XFeat from ALIKED: one extractor's keypoints with the other's descriptors.
+
+    .venv/bin/python bench/part_swap.py task=matching \
+        'extractors=[xfeat,aliked,aliked_kp_xfeat_desc,xfeat_kp_aliked_desc,uwnet_xfeat]'
+
+Any `evaluate.py task=matching` override works (dataset, rotation_tta...). `aliked_kp_xfeat_desc`: ALIKED-n16rot's
+keypoints with XFeat's dense descriptors sampled at them (the project's convention); `xfeat_kp_aliked_desc`: XFeat's
+keypoints with ALIKED's SDDH descriptors computed at them. Result (session 15, BENCHMARKS.md "Which part is the
+gap"): the keypoints carry the difference.
+"""
+
+from __future__ import annotations
+
+import hydra
+import numpy as np
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig
+
+from ruslam.cli import run_cli
+from ruslam.evaluate import evaluate
+from ruslam.models import registry
+from ruslam.models.extractor import Extractor, sample_descriptors, to_float_rgb
+from ruslam.models.peers import ALIKED
+from ruslam.models.teachers.xfeat import STRIDE, XFeat, pad_to_multiple
+
+
+class _Swap(Extractor):
+    default_conf = {"device": "cpu"}
+    uses_device = True
+
+    def __init__(self, **conf):
+        super().__init__(**conf)
+        self.aliked, self.xfeat = ALIKED(), XFeat(vlad_codebook=None)
+
+
+class ALIKEDKeypointsXFeatDescriptors(_Swap):
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        out = self.aliked.extract(image)
+        x = pad_to_multiple(torch.from_numpy(to_float_rgb(image)).permute(2, 0, 1)[None], STRIDE)
+        _, dense, _ = self.xfeat.teacher.run(x)
+        out["descriptors"] = sample_descriptors(dense, torch.from_numpy(out["keypoints"])[None], STRIDE)[0].numpy()
+        return out
+
+
+class XFeatKeypointsALIKEDDescriptors(_Swap):
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        out = self.xfeat.extract(image)
+        rgb = to_float_rgb(image)
+        h, w = rgb.shape[:2]
+        net = self.aliked.net
+        feature_map, _ = net.extract_dense_map(torch.from_numpy(rgb).permute(2, 0, 1)[None])
+        normalized = 2.0 * torch.from_numpy(out["keypoints"]) / torch.tensor([w - 1, h - 1]) - 1  # ALIKED's own
+        out["descriptors"] = F.normalize(net.desc_head(feature_map, [normalized])[0][0], dim=-1).numpy()
+        return out
+
+
+registry.register("aliked_kp_xfeat_desc", f"{__name__}:ALIKEDKeypointsXFeatDescriptors")
+registry.register("xfeat_kp_aliked_desc", f"{__name__}:XFeatKeypointsALIKEDDescriptors")
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    run_cli(evaluate, cfg)
+
+
+if __name__ == "__main__":
+    main()
