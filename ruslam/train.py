@@ -34,8 +34,8 @@ def load_initial_weights(net: torch.nn.Module, path: str | Path) -> None:
     """Fine-tuning: start from trained weights (exported .pt or Lightning .ckpt); unlike ckpt_path, the optimizer,
     learning rate and epoch count start afresh from the config."""
     source = load_uwnet(path)
-    differ = [k for k in net.config if source.config.get(k, False) != net.config[k]]
-    added = [k for k in differ if k in GROWABLE and net.config[k] and not source.config.get(k, False)]
+    differ = [k for k in net.config if source.config.get(k) != net.config[k]]
+    added = [k for k in differ if k in GROWABLE and net.config[k]]  # the rebuilt source has every key: False there
     if set(differ) - set(added):
         k = next(k for k in differ if k not in added)
         raise InputError(f"init_weights={path} holds a UWNet with {k}={source.config.get(k)!r}, but the configured "

