@@ -227,3 +227,16 @@ def test_a_pair_matcher_is_asked_only_when_nearest_neighbours_fail(caplog, monke
     assert result.tracked_ratio == 1.0
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
     assert run(seq, FakeExtractor(seq), SLAMConfig(progress=False)).tracked_ratio < 0.9  # measured: 0.5
+
+
+def test_frames_before_a_delayed_initialisation_get_poses():
+    """Monocular initialisation needs parallax, so it pairs frame 0 with a later frame: the frames in between are
+    posed on the new map too, and as accurately as the rest (the trajectory does not start with a gap)."""
+    from ruslam.slam.tracking import TrackingConfig
+
+    seq = arc()
+    cfg = SLAMConfig(progress=False, tracking=TrackingConfig(init_min_parallax_deg=8.0))
+    result = run(seq, FakeExtractor(seq), cfg)
+    assert result.initialized_at >= 3  # the parallax floor made it wait
+    assert np.array_equal(result.frame_indices, np.arange(len(seq)))
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01

@@ -191,9 +191,9 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                 skipped += 1
             elif tracker.track(frame):
                 initialized_at = i if initialized_at is None else initialized_at
-                if tracker.initial_frame is not None:  # the first frame of a monocular initialisation
-                    kf1, tracker.initial_frame = tracker.initial_frame, None
-                    atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
+                for earlier, reference in tracker.posed_earlier:  # a monocular initialisation's older frames
+                    atlas.record(earlier.index, earlier.timestamp, reference, earlier.T_cw)
+                tracker.posed_earlier = []
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
     records, poses, map_frames = atlas.trajectory()

@@ -90,7 +90,9 @@ class Tracker:
         self.lost_map: Map | None = None  # the map tracking was lost in, while a new one initialises
         self.reference: KeyFrame | None = None
         self.last_kf_index = -10**9
-        self.initial_frame: KeyFrame | None = None  # set when monocular initialisation also poses an older frame
+        self.init_pending: list[Frame] = []  # frames after init_frame that did not initialise with it
+        # poses found for frames older than the one just tracked, for `run` to record: (frame, its reference)
+        self.posed_earlier: list[tuple[Frame | KeyFrame, KeyFrame]] = []
 
     @property
     def map(self) -> Map:
@@ -150,7 +152,7 @@ class Tracker:
                  self.lost_count)
         self.lost_map = self.map
         self.atlas.new_map()
-        self.state, self.lost_count, self.init_frame = "init", 0, None
+        self.state, self.lost_count, self.init_frame, self.init_pending = "init", 0, None, []
         self.last_ref = self.reference = None
         if self.rig is None and len(frame) >= self.cfg.init_min_matches:
             frame.points = [None] * len(frame)
@@ -165,7 +167,7 @@ class Tracker:
             return False
         log.info("Frame %d: back in map %d; the new map is dropped.", frame.index, self.lost_map.id)
         self.atlas.activate(self.lost_map)
-        self.state, self.lost_map, self.init_frame = "ok", None, None
+        self.state, self.lost_map, self.init_frame, self.init_pending = "ok", None, None, []
         return True
 
     # --- initialisation ----------------------------------------------------------------------------------------
@@ -184,7 +186,7 @@ class Tracker:
         c = self.cfg
         ref = self.init_frame
         if ref is None or frame.index - ref.index > c.init_max_frames:
-            self.init_frame = frame if len(frame) >= c.init_min_matches else None
+            self._new_init_reference(frame)
             return False
         ip, ik = match_in_windows(ref.keypoints, ref.descriptors, frame.keypoints, frame.descriptors, c.init_window,
                                   self.binary, self.max_distance, c.window_ratio)
@@ -198,12 +200,15 @@ class Tracker:
         if len(ip) < c.init_min_matches:
             # the reference is kept while it still overlaps (parallax grows), replaced once it no longer does
             if len(ip) < c.init_min_matches // 2:
-                self.init_frame = frame if len(frame) >= c.init_min_matches else None
+                self._new_init_reference(frame)
+            else:
+                self.init_pending.append(frame)
             return False
         out = two_view_initialization(ref.keypoints[ip], frame.keypoints[ik], frame.K, self.seed + frame.index,
                                       c.init_min_parallax_deg, c.init_min_matches // 2,
                                       sigma=self.sigma if self.binary else c.init_sigma_float)
         if out is None:
+            self.init_pending.append(frame)
             return False
         T2, X, good, model = out
         ref.T_cw, frame.T_cw = np.eye(4), T2
@@ -230,8 +235,26 @@ class Tracker:
         log.info("Initialised (%s) from frames %d and %d with %d points.", model, ref.index, frame.index,
                  len(self.map.points))
         self._start(frame, kf2, [kf1, kf2])
-        self.initial_frame = kf1
+        self.posed_earlier = [(kf1, kf1), *self._pose_pending(kf1, kf2)]
         return True
+
+    def _new_init_reference(self, frame: Frame) -> None:
+        self.init_frame = frame if len(frame) >= self.cfg.init_min_matches else None
+        self.init_pending = []
+
+    def _pose_pending(self, kf1: KeyFrame, kf2: KeyFrame) -> list[tuple[Frame, KeyFrame]]:
+        """The frames between the two initial keyframes, posed on the new map by PnP against the nearer of the
+        two (ORB-SLAM leaves them without a pose; a trajectory should not start with a gap)."""
+        posed = []
+        for f in self.init_pending:
+            ref = kf1 if f.index - kf1.index <= kf2.index - f.index else kf2
+            if self._track_by_descriptor(f, ref, self._match_knn) and \
+                    sum(p is not None for p in f.points) - int(f.outliers.sum()) >= self.cfg.min_inliers:
+                posed.append((f, ref))
+            else:
+                f.T_cw = None
+        self.init_pending = []
+        return posed
 
     def _reset(self) -> None:
         for kf in list(self.map.keyframes):
@@ -239,7 +262,7 @@ class Tracker:
         self.map.keyframes.clear()
         self.map.points.clear()
         self.map.covisibility.clear()
-        self.init_frame = None
+        self.init_frame, self.init_pending = None, []
 
     def _start(self, frame: Frame, kf: KeyFrame, kfs: list[KeyFrame]) -> None:
         self.reference = kf
