@@ -191,11 +191,14 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                 skipped += 1
             elif tracker.track(frame):
                 initialized_at = i if initialized_at is None else initialized_at
-                for earlier, reference in tracker.posed_earlier:  # a monocular initialisation's older frames
-                    atlas.record(earlier.index, earlier.timestamp, reference, earlier.T_cw)
-                tracker.posed_earlier = []
+                if tracker.initial_frame is not None:  # the first frame of a monocular initialisation
+                    kf1, tracker.initial_frame = tracker.initial_frame, None
+                    atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
+        keyframes.catch_up(0)  # the map is final: the frames between initial keyframes get their poses on it
+        for frame, reference in tracker.pose_initial_gaps():
+            atlas.record(frame.index, frame.timestamp, reference, frame.T_cw)
     records, poses, map_frames = atlas.trajectory()
     if not records:
         log.warning("SLAM on %s: no frame was tracked (initialisation never succeeded on %d frames, %d skipped).",
