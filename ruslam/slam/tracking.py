@@ -252,8 +252,8 @@ class Tracker:
 
     def _match_pending(self, kf1: KeyFrame, kf2: KeyFrame) -> None:
         """The frames between the two initial keyframes, matched to the new map in windows around the pose
-        interpolated between the two keyframes (not PnP: over a flat floor planar PnP has two solutions); kept for
-        `pose_initial_gaps` when the pose optimisation finds `min_inliers`."""
+        interpolated between the two keyframes; kept for `pose_initial_gaps` when the pose optimisation finds
+        `min_inliers`."""
         points = sorted(self.map.points, key=lambda p: p.id)
         for f in self.init_pending:
             f.T_cw = _interpolated(kf1.T_cw, kf2.T_cw, (f.index - kf1.index) / (kf2.index - kf1.index))
@@ -272,10 +272,11 @@ class Tracker:
         at TEST `pitch60`), and a pose recorded then against the fixed first keyframe put the frame 0.35 m off."""
         out = []
         for f, kf1, kf2 in self.initial_gaps:
+            reference = next((k for k in (kf2, kf1) if not k.is_bad), None)  # a live one: records are relative
             f.points = [_alive(p) for p in f.points]
             f.T_cw = _interpolated(kf1.pose(), kf2.pose(), (f.index - kf1.index) / (kf2.index - kf1.index))
-            if self._optimize(f) >= self.cfg.min_inliers:
-                out.append((f, kf2))
+            if reference is not None and self._optimize(f) >= self.cfg.min_inliers:
+                out.append((f, reference))
         return out
 
     def _reset(self) -> None:
