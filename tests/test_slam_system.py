@@ -240,3 +240,38 @@ def test_frames_before_a_delayed_initialisation_get_poses():
     assert result.initialized_at >= 3  # the parallax floor made it wait
     assert np.array_equal(result.frame_indices, np.arange(len(seq)))
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
+def test_initial_gap_frames_follow_a_later_rescale_of_the_map(monkeypatch):
+    """The local BAs after an initialisation may rescale the early map (2.5x at TEST `pitch60`); the frames between
+    the two initial keyframes must follow, which a pose recorded at initialisation against the first keyframe does
+    not. Here the map is doubled once, after the first mapped keyframe that follows the initialisation."""
+    from ruslam.slam.geometry import umeyama
+    from ruslam.slam.local_mapping import LocalMapper
+    from ruslam.slam.tracking import TrackingConfig
+
+    original = LocalMapper.process
+    rescaled = []
+
+    def process_then_rescale(self, kf):
+        out = original(self, kf)
+        if not rescaled and len(self.map.keyframes) >= 3:
+            rescaled.append(kf.index)
+            for k in self.map.keyframes:
+                k.T_cw[:3, 3] *= 2.0
+            for p in self.map.points:
+                p.position = 2.0 * p.position
+        return out
+
+    monkeypatch.setattr(LocalMapper, "process", process_then_rescale)
+    seq = arc()
+    cfg = SLAMConfig(progress=False, tracking=TrackingConfig(init_min_parallax_deg=8.0))
+    result = run(seq, FakeExtractor(seq), cfg)
+    assert rescaled and result.initialized_at >= 3
+    gap = (result.frame_indices > 0) & (result.frame_indices < result.initialized_at)
+    assert gap.sum() == result.initialized_at - 1
+    later = result.frame_indices > rescaled[0]
+    P, G = result.poses[:, :3, 3], seq.poses[result.frame_indices][:, :3, 3]
+    S = umeyama(P[later], G[later])
+    errors = np.linalg.norm((S[:3, :3] @ P.T).T + S[:3, 3] - G, axis=1)
+    assert errors[gap].max() < 3 * np.median(errors[later]) + 0.01
