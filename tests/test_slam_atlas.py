@@ -1,5 +1,7 @@
 """The Atlas: maps, records that follow rescaled/culled keyframes, and the Sim3 merge of two maps."""
 
+import itertools
+
 import numpy as np
 
 from ruslam.slam.atlas import Atlas
@@ -11,6 +13,7 @@ from ruslam.slam.optimization import se3_exp
 
 K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
 DOWN = np.diag([1.0, -1.0, -1.0])  # camera looking down
+IDS = itertools.count()  # keyframe and point ids (a run's Map numbers them; these objects are built by hand)
 
 
 def T_true(x, z=2.0):
@@ -26,7 +29,7 @@ def _keyframe(T_true_cw, T_est, landmarks, descriptors, points, index, rng, g=No
     f = Frame(index=index, timestamp=float(index), keypoints=uv[vis] + rng.normal(0, 0.3, (len(vis), 2)),
               descriptors=descriptors[vis], K=K, image_size=(640, 480),
               global_descriptor=None if g is None else np.asarray(g, np.float32), T_cw=T_est)
-    kf = KeyFrame(f)
+    kf = KeyFrame(f, next(IDS))
     for i, lm in enumerate(vis):
         points[lm].add_observation(kf, i)
     return kf
@@ -39,12 +42,12 @@ def _two_maps(rng, D):
     desc /= np.linalg.norm(desc, axis=1, keepdims=True)
     atlas = Atlas()
     old_map = atlas.active
-    holder = KeyFrame(Frame(0, 0.0, np.zeros((0, 2)), desc[:0], K, (640, 480), T_cw=np.eye(4)))
-    old_pts = [MapPoint(x, d, holder) for x, d in zip(landmarks, desc, strict=True)]
+    holder = KeyFrame(Frame(0, 0.0, np.zeros((0, 2)), desc[:0], K, (640, 480), T_cw=np.eye(4)), next(IDS))
+    old_pts = [MapPoint(x, d, holder, next(IDS)) for x, d in zip(landmarks, desc, strict=True)]
     old = [_keyframe(T_true(x), T_true(x), landmarks, desc, old_pts, i, rng) for i, x in enumerate([-0.3, 0.0, 0.3])]
     _fill(old_map, old, old_pts)
     new_map = atlas.new_map()
-    new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, holder) for x, d in zip(landmarks, desc, strict=True)]
+    new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, holder, next(IDS)) for x, d in zip(landmarks, desc, strict=True)]
     new = [_keyframe(T_true(x), _rigid(T_true(x) @ inverse_pose(D)), landmarks, desc, new_pts, 10 + i, rng)
            for i, x in enumerate([0.5, 0.7, 0.9])]
     _fill(new_map, new, new_pts)
@@ -73,8 +76,8 @@ def test_new_map_keeps_the_old_one_and_drops_an_empty_one():
     first = atlas.active
     atlas.new_map()  # the first map is empty: replaced, not kept
     assert atlas.maps == [atlas.active] and atlas.active is not first
-    kf = KeyFrame(Frame(0, 0.0, np.zeros((0, 2)), np.zeros((0, 8), np.float32), K, (640, 480), T_cw=np.eye(4)))
-    atlas.active.add_keyframe(kf)
+    atlas.active.new_keyframe(Frame(0, 0.0, np.zeros((0, 2)), np.zeros((0, 8), np.float32), K, (640, 480),
+                                    T_cw=np.eye(4)))
     kept = atlas.active
     atlas.new_map()
     assert atlas.inactive() == [kept] and len(atlas.maps) == 2
@@ -113,3 +116,18 @@ def test_no_merge_without_a_geometric_link():
     lc = LoopCloser(atlas, LocalMapper(atlas, MappingConfig(), binary=False), LoopConfig(), binary=False, stereo=False)
     lc.process(new[1])
     assert lc.merges == [] and len(atlas.maps) == 2
+
+
+def test_every_run_numbers_its_keyframes_and_points_from_zero_across_its_maps():
+    # ids seed loop closing's RANSAC and order sets: numbered per process, a run's result depended on what ran
+    # before it (a grid cell alone or after another)
+    f = Frame(0, 0.0, np.zeros((0, 2)), np.zeros((0, 8), np.float32), K, (640, 480), T_cw=np.eye(4))
+    for _ in range(2):
+        atlas = Atlas()
+        kf = atlas.active.new_keyframe(f)
+        p = atlas.active.new_point(np.zeros(3), np.zeros(8, np.float32), kf)
+        second_map = atlas.new_map()
+        kf2 = second_map.new_keyframe(f)
+        q = second_map.new_point(np.zeros(3), np.zeros(8, np.float32), kf2)
+        assert (kf.id, p.id, kf2.id, q.id) == (0, 0, 1, 1)
+        assert p in atlas.maps[0].points and q in second_map.points and second_map.keyframes == [kf2]

@@ -211,13 +211,13 @@ def test_map_point_descriptor_is_the_least_median_distance_one_and_follows_obser
         kf = KeyFrame.__new__(KeyFrame)  # only what update_descriptors reads: id, descriptors, points
         kf.id, kf.descriptors, kf.points = len(kfs) + 1000, np.stack([d, d[::-1]]), [None, None]
         kfs.append(kf)
-    p = MapPoint(np.zeros(3), descs[0], kfs[0])
+    p = MapPoint(np.zeros(3), descs[0], kfs[0], 0)
     for kf in kfs[:3]:
         p.add_observation(kf, 0)
-    q = MapPoint(np.zeros(3), descs[0], kfs[0])  # in the same batch, with other observations: its own answer
+    q = MapPoint(np.zeros(3), descs[0], kfs[0], 1)  # in the same batch, with other observations: its own answer
     for kf in kfs[1:]:
         q.add_observation(kf, 1)
-    two = MapPoint(np.zeros(3), descs[0], kfs[0])  # fewer than 3 observations: the latest one
+    two = MapPoint(np.zeros(3), descs[0], kfs[0], 2)  # fewer than 3 observations: the latest one
     for kf in kfs[2:]:
         two.add_observation(kf, 0)
     update_descriptors([p, q, two], binary=False)

@@ -1,5 +1,7 @@
 """Loop closing: eq. 9 scores, retrieval, temporal consistency; the full loop on a drifting sequence (slow)."""
 
+import itertools
+
 import numpy as np
 
 from ruslam.slam.atlas import Atlas
@@ -7,12 +9,13 @@ from ruslam.slam.loop_closing import KeyFrameDatabase, LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, KeyFrame, Map
 
 K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
+IDS = itertools.count()  # keyframe and point ids (a run's Map numbers them; these objects are built by hand)
 
 
 def keyframe(g, index=0):
     f = Frame(index=index, timestamp=float(index), keypoints=np.zeros((0, 2)), descriptors=np.zeros((0, 8), np.float32),
               K=K, image_size=(640, 480), global_descriptor=np.asarray(g, np.float32), T_cw=np.eye(4))
-    return KeyFrame(f)
+    return KeyFrame(f, next(IDS))
 
 
 def test_eq9_scores_match_the_definition():
@@ -108,7 +111,7 @@ def _observing_keyframe(T_true, T_est, landmarks, descriptors, points, index, rn
     f = Frame(index=index, timestamp=float(index), keypoints=uv[vis] + rng.normal(0, 0.3, (len(vis), 2)),
               descriptors=descriptors[vis], K=K, image_size=(640, 480),
               global_descriptor=np.ones(8, np.float32), T_cw=T_est)
-    kf = KeyFrame(f)
+    kf = KeyFrame(f, next(IDS))
     for i, l in enumerate(vis):
         points[l].add_observation(kf, i)
     return kf
@@ -137,8 +140,9 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     mapper = LocalMapper(atlas, MappingConfig(), binary=False)
     lc = LoopCloser(atlas, mapper, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
     placeholder = keyframe(np.ones(8))  # points need a creator; the real one is set below
-    old_pts = [MapPoint(x, d, placeholder) for x, d in zip(landmarks, desc, strict=True)]
-    new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, placeholder) for x, d in zip(landmarks, desc, strict=True)]
+    old_pts = [MapPoint(x, d, placeholder, next(IDS)) for x, d in zip(landmarks, desc, strict=True)]
+    new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, placeholder, next(IDS))
+               for x, d in zip(landmarks, desc, strict=True)]
     old = [_observing_keyframe(T_true(x), T_true(x), landmarks, desc, old_pts, i, rng)
            for i, x in enumerate([-0.3, 0.0, 0.3])]
     new = [_observing_keyframe(T_true(x), _rigid(T_true(x) @ inverse_pose(D)), landmarks, desc, new_pts, 10 + i, rng)

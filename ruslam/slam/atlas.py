@@ -45,7 +45,7 @@ class Atlas:
         with self.lock:
             if not self.active.keyframes:
                 self.maps.remove(self.active)
-            new = Map(self.lock, max(m.id for m in self.maps) + 1 if self.maps else 0)
+            new = Map(self.lock, max(m.id for m in self.maps) + 1 if self.maps else 0, self.active.numbering)
             self.maps.append(new)
             self.active = new
             return new

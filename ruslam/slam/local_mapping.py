@@ -155,11 +155,10 @@ class LocalMapper:
             normals = sum(r / np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12) for r in rays)
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             for ia, ib, x, normal in zip(a[ok], b[ok], X[ok], normals, strict=True):
-                p = MapPoint(x, kf.descriptors[ia], kf)
+                p = self.map.new_point(x, kf.descriptors[ia], kf)
                 p.add_observation(kf, int(ia))
                 p.add_observation(n, int(ib))
                 p.set_normal(normal)
-                self.map.add_point(p)
                 self.recent.append(p)
                 free1[ia] = False
 

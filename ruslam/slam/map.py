@@ -98,21 +98,29 @@ class Frame:
         return (uv[:, 0] >= border) & (uv[:, 1] >= border) & (uv[:, 0] < w - border) & (uv[:, 1] < h - border)
 
 
-_keyframe_ids = itertools.count()
-_point_ids = itertools.count()
+@dataclass
+class Numbering:
+    """The ids of one run's keyframes and points, shared by all the maps of its Atlas, from 0 in every run.
+
+    Ids seed loop closing's RANSAC and order sets of keyframes and points; counters shared by the whole process
+    made a run's result depend on what had run before it in the same process (a grid cell alone or after another).
+    """
+
+    keyframes: itertools.count = field(default_factory=itertools.count)
+    points: itertools.count = field(default_factory=itertools.count)
 
 
 class KeyFrame(Frame):
-    """A frame kept in the map; `id` is unique and increasing in insertion order."""
+    """A frame kept in the map; `id` is unique in its run and increasing in insertion order (`Map.new_keyframe`)."""
 
-    def __init__(self, frame: Frame):
+    def __init__(self, frame: Frame, id: int):
         super().__init__(
             index=frame.index, timestamp=frame.timestamp, keypoints=frame.keypoints,
             descriptors=frame.descriptors, K=frame.K, image_size=frame.image_size,
             global_descriptor=frame.global_descriptor, right=frame.right, depth=frame.depth,
             T_cw=frame.T_cw.copy(), points=list(frame.points),
         )
-        self.id = next(_keyframe_ids)
+        self.id = id
         self.is_bad = False
         self.parent: KeyFrame | None = None  # spanning tree, for the essential graph and culled keyframes
         self.T_parent: np.ndarray | None = None  # T_cw relative to the parent, kept when culled
@@ -143,8 +151,8 @@ class KeyFrame(Frame):
 
 
 class MapPoint:
-    def __init__(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame):
-        self.id = next(_point_ids)
+    def __init__(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame, id: int):
+        self.id = id
         self.position = np.asarray(position, dtype=np.float64)
         self.descriptor = descriptor
         self.reference = reference  # keyframe that created it (for loop correction)
@@ -231,8 +239,9 @@ def _batched_distances(descs: np.ndarray, binary: bool) -> np.ndarray:
 class Map:
     """One connected map. Several live in an Atlas (`ruslam.slam.atlas`); they share one lock."""
 
-    def __init__(self, lock: threading.RLock | None = None, id: int = 0):
+    def __init__(self, lock: threading.RLock | None = None, id: int = 0, numbering: Numbering | None = None):
         self.id = id
+        self.numbering = numbering or Numbering()
         self.keyframes: list[KeyFrame] = []  # insertion order, culled ones removed
         self.points: set[MapPoint] = set()
         self.covisibility: dict[KeyFrame, dict[KeyFrame, int]] = {}
@@ -250,6 +259,11 @@ class Map:
         return f"Map(id={self.id}, keyframes={len(self.keyframes)})"
 
     # --- keyframes -------------------------------------------------------------------------------------------
+    def new_keyframe(self, frame: Frame) -> KeyFrame:
+        kf = KeyFrame(frame, next(self.numbering.keyframes))
+        self.add_keyframe(kf)
+        return kf
+
     def add_keyframe(self, kf: KeyFrame) -> None:
         self.keyframes.append(kf)
         self.covisibility[kf] = {}
@@ -308,6 +322,11 @@ class Map:
         self.keyframes.remove(kf)
 
     # --- points ----------------------------------------------------------------------------------------------
+    def new_point(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame) -> MapPoint:
+        p = MapPoint(position, descriptor, reference, next(self.numbering.points))
+        self.add_point(p)
+        return p
+
     def add_point(self, p: MapPoint) -> None:
         self.points.add(p)
 

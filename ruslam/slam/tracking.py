@@ -182,8 +182,7 @@ class Tracker:
         if frame.depth is None or np.sum(np.isfinite(frame.depth)) < self.cfg.init_min_matches:
             return False
         frame.T_cw = np.eye(4)
-        kf = KeyFrame(frame)
-        self.map.add_keyframe(kf)
+        kf = self.map.new_keyframe(frame)
         self._add_stereo_points(kf, all_points=True)
         frame.points = list(kf.points)
         self._start(frame, kf, [kf])
@@ -219,14 +218,11 @@ class Tracker:
             return False
         T2, X, good, model = out
         ref.T_cw, frame.T_cw = np.eye(4), T2
-        kf1, kf2 = KeyFrame(ref), KeyFrame(frame)
-        for k in (kf1, kf2):
-            self.map.add_keyframe(k)
+        kf1, kf2 = self.map.new_keyframe(ref), self.map.new_keyframe(frame)
         for a, b, x in zip(ip[good], ik[good], X[good], strict=True):
-            p = MapPoint(x, frame.descriptors[b], kf1)
+            p = self.map.new_point(x, frame.descriptors[b], kf1)
             p.add_observation(kf1, int(a))
             p.add_observation(kf2, int(b))
-            self.map.add_point(p)
         self.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id), (10, 10))
         seen = [p.position for p in kf1.points if p is not None]
         median = float(np.median(transform(kf1.T_cw, np.stack(seen))[:, 2])) if seen else 0.0
@@ -479,8 +475,7 @@ class Tracker:
         return bool((allowed and weak or urgent) and tracked > 15)
 
     def _insert_keyframe(self, frame: Frame) -> None:
-        kf = KeyFrame(frame)
-        self.map.add_keyframe(kf)
+        kf = self.map.new_keyframe(frame)
         if self.rig is not None:
             self._add_stereo_points(kf, all_points=False)
         self.reference = kf
@@ -502,9 +497,8 @@ class Tracker:
         new = []
         for i in idx:
             xc = Kinv @ np.r_[kf.keypoints[i], 1.0] * kf.depth[i]
-            p = MapPoint(T_wc[:3, :3] @ xc + T_wc[:3, 3], kf.descriptors[i], kf)
+            p = self.map.new_point(T_wc[:3, :3] @ xc + T_wc[:3, 3], kf.descriptors[i], kf)
             p.add_observation(kf, int(i))
-            self.map.add_point(p)
             new.append(p)
         update_normals(new)
 
