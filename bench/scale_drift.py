@@ -61,16 +61,16 @@ class MapDepthProbe:
     def wrap(self, track_local_map):
         def probed(tracker, frame):
             ok = track_local_map(tracker, frame)
-            self.measure(frame)
+            self.measure(frame, tracker.store)
             return ok
         return probed
 
-    def measure(self, frame) -> None:
-        used = [(k, p) for k, p in enumerate(frame.points) if p is not None and not frame.outliers[k]]
-        if not used:
+    def measure(self, frame, store) -> None:
+        used = np.nonzero((frame.points >= 0) & ~frame.outliers)[0]
+        if not len(used):
             return
-        kp = frame.keypoints[[k for k, _ in used]]
-        z_est = transform(frame.T_cw, np.stack([p.position for _, p in used]))[:, 2]
+        kp = frame.keypoints[used]
+        z_est = transform(frame.T_cw, store.position[frame.points[used]])[:, 2]
         h, w = frame.image_size[1], frame.image_size[0]
         rng = self.render(frame.index)
         r = rng[np.clip(np.round(kp[:, 1]).astype(int), 0, h - 1), np.clip(np.round(kp[:, 0]).astype(int), 0, w - 1)]

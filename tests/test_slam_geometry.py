@@ -203,31 +203,32 @@ def test_window_search_respects_radius_and_uniqueness():
 
 
 def test_map_point_descriptor_is_the_least_median_distance_one_and_follows_observations():
-    from ruslam.slam.map import KeyFrame, MapPoint, update_descriptors
+    from ruslam.slam.map import KeyFrame, PointStore, update_descriptors
 
     descs = np.array([[0.0, 0.0], [1.0, 0.0], [1.1, 0.0], [5.0, 0.0]], np.float32)
     kfs = []
     for d in descs:
         kf = KeyFrame.__new__(KeyFrame)  # only what update_descriptors reads: id, descriptors, points
-        kf.id, kf.descriptors, kf.points = len(kfs) + 1000, np.stack([d, d[::-1]]), [None, None]
+        kf.id, kf.descriptors, kf.points = len(kfs) + 1000, np.stack([d, d[::-1]]), np.full(2, -1)
         kfs.append(kf)
-    p = MapPoint(np.zeros(3), descs[0], kfs[0], 0)
+    store = PointStore()
+    p = store.add(np.zeros(3), descs[0], kfs[0])
     for kf in kfs[:3]:
-        p.add_observation(kf, 0)
-    q = MapPoint(np.zeros(3), descs[0], kfs[0], 1)  # in the same batch, with other observations: its own answer
+        store.add_observation(p, kf, 0)
+    q = store.add(np.zeros(3), descs[0], kfs[0])  # in the same batch, with other observations: its own answer
     for kf in kfs[1:]:
-        q.add_observation(kf, 1)
-    two = MapPoint(np.zeros(3), descs[0], kfs[0], 2)  # fewer than 3 observations: the latest one
+        store.add_observation(q, kf, 1)
+    two = store.add(np.zeros(3), descs[0], kfs[0])  # fewer than 3 observations: the latest one
     for kf in kfs[2:]:
-        two.add_observation(kf, 0)
-    update_descriptors([p, q, two], binary=False)
+        store.add_observation(two, kf, 0)
+    update_descriptors(store, [p, q, two], binary=False)
     # lower median of each row (self-distance 0 included): [0,0] -> 1, [1,0] -> 0.1, [1.1,0] -> 0.1; first tie wins
-    assert np.array_equal(p.descriptor, descs[1])
-    assert np.array_equal(q.descriptor, descs[1, ::-1])  # members {1, 1.1, 5} (swapped): 0.1, 0.1, 3.9; first tie
-    assert np.array_equal(two.descriptor, descs[3])
-    p.observations.pop(kfs[0])
-    p.observations.pop(kfs[1])
-    p.add_observation(kfs[3], 0)
-    p.add_observation(kfs[0], 0)  # same count as before, other members {1.1, 5, 0}: lower medians 1.1, 3.9, 1.1
-    update_descriptors([p], binary=False)
-    assert np.array_equal(p.descriptor, descs[2])
+    assert np.array_equal(store.descriptor[p], descs[1])
+    assert np.array_equal(store.descriptor[q], descs[1, ::-1])  # members {1, 1.1, 5} (swapped): 0.1, 0.1, 3.9
+    assert np.array_equal(store.descriptor[two], descs[3])
+    store.observations[p].pop(kfs[0])
+    store.observations[p].pop(kfs[1])
+    store.add_observation(p, kfs[3], 0)
+    store.add_observation(p, kfs[0], 0)  # same count as before, other members {1.1, 5, 0}: lower medians 1.1, 3.9, 1.1
+    update_descriptors(store, [p], binary=False)
+    assert np.array_equal(store.descriptor[p], descs[2])

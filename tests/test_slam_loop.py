@@ -9,7 +9,7 @@ from ruslam.slam.loop_closing import KeyFrameDatabase, LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, KeyFrame, Map
 
 K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
-IDS = itertools.count()  # keyframe and point ids (a run's Map numbers them; these objects are built by hand)
+IDS = itertools.count()  # keyframe ids (a run's Map numbers them; these keyframes are built by hand)
 
 
 def keyframe(g, index=0):
@@ -102,8 +102,9 @@ def test_covisible_neighbours_are_not_loop_candidates():
     assert lc._detect(b) == [a]
 
 
-def _observing_keyframe(T_true, T_est, landmarks, descriptors, points, index, rng):
-    """A keyframe at true pose T_true (its pixels), estimated pose T_est, observing `points` (one per landmark)."""
+def _observing_keyframe(T_true, T_est, landmarks, descriptors, store, points, index, rng):
+    """A keyframe at true pose T_true (its pixels), estimated pose T_est, observing `points` (ids in `store`, one per
+    landmark)."""
     from ruslam.slam.geometry import project
 
     uv, z = project(K, T_true, landmarks)
@@ -113,7 +114,7 @@ def _observing_keyframe(T_true, T_est, landmarks, descriptors, points, index, rn
               global_descriptor=np.ones(8, np.float32), T_cw=T_est)
     kf = KeyFrame(f, next(IDS))
     for i, l in enumerate(vis):
-        points[l].add_observation(kf, i)
+        store.add_observation(points[l], kf, i)
     return kf
 
 
@@ -121,7 +122,7 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     from ruslam.slam.geometry import pose_matrix
     from ruslam.slam.local_mapping import LocalMapper, MappingConfig
     from ruslam.slam.loop_closing import _rigid
-    from ruslam.slam.map import MapPoint, inverse_pose
+    from ruslam.slam.map import inverse_pose
     from ruslam.slam.optimization import se3_exp
 
     rng = np.random.default_rng(4)
@@ -140,17 +141,18 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     mapper = LocalMapper(atlas, MappingConfig(), binary=False)
     lc = LoopCloser(atlas, mapper, LoopConfig(global_bundle_adjustment=False), binary=False, stereo=False)
     placeholder = keyframe(np.ones(8))  # points need a creator; the real one is set below
-    old_pts = [MapPoint(x, d, placeholder, next(IDS)) for x, d in zip(landmarks, desc, strict=True)]
-    new_pts = [MapPoint(D[:3, :3] @ x + D[:3, 3], d, placeholder, next(IDS))
-               for x, d in zip(landmarks, desc, strict=True)]
-    old = [_observing_keyframe(T_true(x), T_true(x), landmarks, desc, old_pts, i, rng)
+    store = atlas.store
+    old_pts = np.array([store.add(x, d, placeholder) for x, d in zip(landmarks, desc, strict=True)])
+    new_pts = np.array([store.add(D[:3, :3] @ x + D[:3, 3], d, placeholder)
+                        for x, d in zip(landmarks, desc, strict=True)])
+    old = [_observing_keyframe(T_true(x), T_true(x), landmarks, desc, store, old_pts, i, rng)
            for i, x in enumerate([-0.3, 0.0, 0.3])]
-    new = [_observing_keyframe(T_true(x), _rigid(T_true(x) @ inverse_pose(D)), landmarks, desc, new_pts, 10 + i, rng)
-           for i, x in enumerate([-0.2, 0.1, 0.4])]
-    for p in old_pts + new_pts:
-        if p.observations:
-            p.reference = next(iter(p.observations))
-            m.add_point(p)
+    new = [_observing_keyframe(T_true(x), _rigid(T_true(x) @ inverse_pose(D)), landmarks, desc, store, new_pts,
+                               10 + i, rng) for i, x in enumerate([-0.2, 0.1, 0.4])]
+    for j in np.r_[old_pts, new_pts]:
+        if store.observations[j]:
+            store.reference[j] = next(iter(store.observations[j]))
+            m.add_point(int(j))
     chain = old + new
     for k in chain:
         m.add_keyframe(k)
@@ -172,5 +174,5 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     assert before > 0.2 and centre_error(new) < 0.1 * before
     assert lc.loops == [(new[-1].index, old[1].index)]
     # duplicates were fused: the new keyframes now observe the old points
-    seen = {p for k in new for p in k.points if p is not None}
-    assert len(seen & set(old_pts)) > 0.8 * len(seen)
+    seen = {j for k in new for j in k.points[k.points >= 0].tolist()}
+    assert len(seen & set(old_pts.tolist())) > 0.8 * len(seen)

@@ -187,8 +187,7 @@ def test_a_keyframe_moved_by_inline_mapping_gives_its_frame_the_new_pose(monkeyp
         if len(processed) == 8:  # move every keyframe and point of the map (x' = x + shift)
             for k in self.map.keyframes:
                 k.T_cw = k.T_cw @ inverse_pose(shift)
-            for p in self.map.points:
-                p.position = p.position + shift[:3, 3]
+            self.store.position[list(self.map.points)] += shift[:3, 3]
         return mapped
 
     monkeypatch.setattr(LocalMapper, "process", process_and_shift)
@@ -259,8 +258,7 @@ def test_initial_gap_frames_follow_a_later_rescale_of_the_map(monkeypatch):
             rescaled.append(kf.index)
             for k in self.map.keyframes:
                 k.T_cw[:3, 3] *= 2.0
-            for p in self.map.points:
-                p.position = 2.0 * p.position
+            self.store.position[list(self.map.points)] *= 2.0
         return out
 
     monkeypatch.setattr(LocalMapper, "process", process_then_rescale)

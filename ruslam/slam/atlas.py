@@ -38,6 +38,7 @@ class Atlas:
         self.lock = first.lock if first is not None else threading.RLock()
         self.maps: list[Map] = [first if first is not None else Map(self.lock, 0)]
         self.active: Map = self.maps[0]
+        self.store = self.maps[0].store  # the points of every map
         self.records: list[Record] = []
 
     def new_map(self) -> Map:
@@ -45,7 +46,8 @@ class Atlas:
         with self.lock:
             if not self.active.keyframes:
                 self.maps.remove(self.active)
-            new = Map(self.lock, max(m.id for m in self.maps) + 1 if self.maps else 0, self.active.numbering)
+            new = Map(self.lock, max(m.id for m in self.maps) + 1 if self.maps else 0, self.store,
+                      self.active.keyframe_ids)
             self.maps.append(new)
             self.active = new
             return new
@@ -75,8 +77,8 @@ class Atlas:
                 kf.T_cw = _rigid(T)
                 kf.scale *= s
                 kf.map = target
-            for p in moved.points:
-                p.position = transform(S, p.position[None])[0]
+            for j in moved.points:
+                self.store.position[j] = transform(S, self.store.position[j][None])[0]
             target.keyframes.extend(moved.keyframes)
             target.points |= moved.points
             target.covisibility.update(moved.covisibility)

@@ -24,7 +24,7 @@ from ruslam.slam.geometry import (
     triangulate,
     triangulation_mask,
 )
-from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform, update_descriptors, update_normals
+from ruslam.slam.map import KeyFrame, Map, PointStore, inverse_pose, transform, update_descriptors, update_normals
 
 log = logging.getLogger(__name__)
 
@@ -61,12 +61,16 @@ class LocalMapper:
         self.atlas, self.cfg, self.binary, self.rig, self.solve = atlas, cfg, binary, rig, solve
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
-        self.recent: list[MapPoint] = []
+        self.recent: list[int] = []  # ids of points made in the last keyframes, culled early if rarely found
 
     @property
     def map(self) -> Map:
         """The active map: keyframes of a map left behind (tracking lost) are not mapped any further."""
         return self.atlas.active
+
+    @property
+    def store(self) -> PointStore:
+        return self.atlas.store
 
     # --- one keyframe ------------------------------------------------------------------------------------------
     def process(self, kf: KeyFrame) -> bool:
@@ -90,37 +94,43 @@ class LocalMapper:
         return True
 
     def _insert(self, kf: KeyFrame) -> None:
+        s = self.store
         observed = []  # points this keyframe newly observes
-        for i, p in enumerate(kf.points):
-            if p is None or p.is_bad:
-                kf.points[i] = None
-            elif kf not in p.observations:
-                p.add_observation(kf, i)
-                observed.append(p)
+        matched = kf.points >= 0
+        matched[matched] = ~s.bad[kf.points[matched]]
+        kf.points[~matched] = -1
+        for i in np.nonzero(matched)[0]:
+            j = int(kf.points[i])
+            if kf not in s.observations[j]:
+                s.add_observation(j, kf, int(i))
+                observed.append(j)
             else:  # created by this keyframe (stereo points)
-                self.recent.append(p)
-        update_normals(observed)
-        update_descriptors(observed, self.binary)
+                self.recent.append(j)
+        update_normals(s, observed)
+        update_descriptors(s, observed, self.binary)
         self.map.update_connections(kf)
 
     def _cull_points(self, kf: KeyFrame) -> None:
         min_obs = 3 if self.rig is not None else 2
+        s = self.store
         keep = []
-        for p in self.recent:
-            age = kf.id - p.first_kf_id
-            if p.is_bad or p.reference.map.resolved() is not kf.map:  # a point of a map left behind
+        for j in self.recent:
+            age = kf.id - s.first_kf_id[j]
+            if s.bad[j] or s.reference[j].map.resolved() is not kf.map:  # a point of a map left behind
                 continue
-            if p.found / max(p.visible, 1) < self.cfg.min_found_ratio or (age >= 2 and len(p.observations) < min_obs):
-                self.map.remove_point(p)
+            if s.found[j] / max(s.visible[j], 1) < self.cfg.min_found_ratio or \
+                    (age >= 2 and len(s.observations[j]) < min_obs):
+                self.map.remove_point(j)
             elif age < 3:
-                keep.append(p)
+                keep.append(j)
         self.recent = keep
 
     # --- new points --------------------------------------------------------------------------------------------
     def _triangulate(self, kf: KeyFrame) -> None:
         c = self.cfg
         K = kf.K
-        free1 = np.array([p is None for p in kf.points])
+        s = self.store
+        free1 = kf.points < 0
         neighbours = self.map.neighbours(kf, c.triangulation_neighbours)
         # widest baseline first: a keypoint is triangulated with the most distant neighbour that sees it
         neighbours.sort(key=lambda n: -np.linalg.norm(n.center - kf.center))
@@ -130,14 +140,14 @@ class LocalMapper:
                 if baseline < np.linalg.norm(self.rig[1][:3, 3]):
                     continue
             else:
-                seen = n.alive_points()
-                if not seen:
+                seen = s.alive(n.points)
+                if not len(seen):
                     continue
-                depth = np.median(transform(n.T_cw, np.array([p.position for p in seen]))[:, 2])
+                depth = np.median(transform(n.T_cw, s.position[seen])[:, 2])
                 if baseline / max(depth, 1e-9) < 0.01:
                     continue
             i1 = np.nonzero(free1)[0]
-            i2 = np.array([i for i, p in enumerate(n.points) if p is None], int)
+            i2 = np.nonzero(n.points < 0)[0]
             if len(i1) == 0 or len(i2) == 0:
                 continue
             F = fundamental_from_poses(K, n.K, n.T_cw @ inverse_pose(kf.T_cw))
@@ -154,13 +164,15 @@ class LocalMapper:
             rays = [X[ok] - c for c in (kf.center, n.center)]
             normals = sum(r / np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12) for r in rays)
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-            for ia, ib, x, normal in zip(a[ok], b[ok], X[ok], normals, strict=True):
-                p = self.map.new_point(x, kf.descriptors[ia], kf)
-                p.add_observation(kf, int(ia))
-                p.add_observation(n, int(ib))
-                p.set_normal(normal)
-                self.recent.append(p)
+            new = []
+            for ia, ib, x in zip(a[ok], b[ok], X[ok], strict=True):
+                j = self.map.new_point(x, kf.descriptors[ia], kf)
+                s.add_observation(j, kf, int(ia))
+                s.add_observation(j, n, int(ib))
+                new.append(j)
                 free1[ia] = False
+            s.set_normals(np.array(new, np.int64), normals)
+            self.recent += new
 
     def _fuse(self, kf: KeyFrame) -> None:
         targets = []
@@ -168,25 +180,27 @@ class LocalMapper:
             for m in [n, *self.map.neighbours(n, 5)]:
                 if m is not kf and m not in targets:
                     targets.append(m)
+        s = self.store
         for t in targets:
-            self.fuse_points(t, kf.alive_points())
-        candidates = sorted({p for t in targets for p in t.alive_points()}, key=lambda p: p.id)
-        self.fuse_points(kf, candidates)
-        points = kf.alive_points()
-        update_descriptors(points, self.binary)
-        update_normals(points)
+            self.fuse_points(t, s.alive(kf.points))
+        if targets:
+            self.fuse_points(kf, s.alive(np.unique(np.concatenate([t.points for t in targets]))))
+        points = s.alive(kf.points)
+        update_descriptors(s, points, self.binary)
+        update_normals(s, points)
         self.map.update_connections(kf)
 
-    def fuse_points(self, kf: KeyFrame, points: list[MapPoint], T_cw: np.ndarray | None = None,
+    def fuse_points(self, kf: KeyFrame, points: np.ndarray, T_cw: np.ndarray | None = None,
                     replace_with_new: bool = False) -> int:
-        """Project points into kf and merge each with the point already at the matched keypoint (or add it).
+        """Project points (ids) into kf and merge each with the point already at the matched keypoint (or add it).
 
         `T_cw` overrides kf's pose (loop fusion with the corrected similarity). Returns the number of fusions.
         """
-        points = [p for p in points if not p.is_bad and kf not in p.observations]
-        if not points:
+        s = self.store
+        points = np.array([j for j in points if not s.bad[j] and kf not in s.observations[j]], np.int64)
+        if not len(points):
             return 0
-        X = np.array([p.position for p in points])
+        X = s.position[points]
         T = kf.T_cw if T_cw is None else T_cw
         Xc = transform(T, X)
         z = Xc[:, 2]
@@ -194,22 +208,20 @@ class LocalMapper:
         vis = np.nonzero((z > 0) & kf.in_image(uv))[0]
         if len(vis) == 0:
             return 0
-        desc = np.array([points[i].descriptor for i in vis])
-        ip, ik = match_in_windows(uv[vis], desc, kf.keypoints, kf.descriptors, self.cfg.fuse_radius, self.binary,
-                                  self.max_distance, ratio=1.0)
+        ip, ik = match_in_windows(uv[vis], s.descriptor[points[vis]], kf.keypoints, kf.descriptors,
+                                  self.cfg.fuse_radius, self.binary, self.max_distance, ratio=1.0)
         fused = 0
-        for a, k in zip(vis[ip], ik, strict=True):
-            p = points[a]
-            if p.is_bad or kf in p.observations:
+        for j, k in zip(points[vis[ip]].tolist(), ik.tolist(), strict=True):
+            if s.bad[j] or kf in s.observations[j]:
                 continue
-            q = kf.points[k]
-            if q is not None and not q.is_bad:
-                if replace_with_new or len(p.observations) > len(q.observations):
-                    self.map.replace_point(q, p)
+            q = int(kf.points[k])
+            if q >= 0 and not s.bad[q]:
+                if replace_with_new or len(s.observations[j]) > len(s.observations[q]):
+                    self.map.replace_point(q, j)
                 else:
-                    self.map.replace_point(p, q)
+                    self.map.replace_point(j, q)
             else:
-                p.add_observation(kf, int(k))
+                s.add_observation(j, kf, k)
             fused += 1
         return fused
 
@@ -217,11 +229,11 @@ class LocalMapper:
     def _local_ba_problem(self, kf: KeyFrame) -> dict | None:
         c = self.cfg
         local = [kf, *self.map.neighbours(kf, c.ba_keyframes - 1)]
-        points = sorted({p for k in local for p in k.alive_points()}, key=lambda p: p.id)
+        points = self.store.alive(np.unique(np.concatenate([k.points for k in local])))
         outside: dict[KeyFrame, int] = {}
         local_set = set(local)
-        for p in points:
-            for k in p.observations:
+        for j in points:
+            for k in self.store.observations[j]:
                 if k not in local_set and not k.is_bad:
                     outside[k] = outside.get(k, 0) + 1
         fixed = sorted(outside, key=lambda k: (-outside[k], k.id))[: c.ba_fixed_keyframes]
@@ -232,21 +244,22 @@ class LocalMapper:
         kfs = local + fixed
         return self._ba_problem(kfs, np.arange(len(kfs)) >= len(local), points)
 
-    def bundle_adjust(self, kfs: list[KeyFrame], fixed: np.ndarray, points: list[MapPoint], iterations) -> None:
+    def bundle_adjust(self, kfs: list[KeyFrame], fixed: np.ndarray, points: np.ndarray, iterations) -> None:
         """BA over keyframes/points; writes back poses, positions, and drops outlier observations."""
         problem = self._ba_problem(kfs, fixed, points)
         if problem is not None:
             self._write_back(problem, self._solve(problem, iterations))
 
-    def _ba_problem(self, kfs: list[KeyFrame], fixed: np.ndarray, points: list[MapPoint]) -> dict | None:
-        """The arrays of a BA (`ruslam.slam.bundle_adjustment`) and the objects to write the result back to."""
-        if not points or len(kfs) < 2:
+    def _ba_problem(self, kfs: list[KeyFrame], fixed: np.ndarray, points: np.ndarray) -> dict | None:
+        """The arrays of a BA (`ruslam.slam.bundle_adjustment`) over keyframes and point ids, to write back."""
+        if not len(points) or len(kfs) < 2:
             return None
         kidx = {k: i for i, k in enumerate(kfs)}
         # one row per observation by a problem keyframe, in the points' order (then, for a stereo keyframe with a
         # right measurement, a second row right after it)
-        counts = [len(p.observations) for p in points]
-        flat = np.array([(kidx.get(k, -1), i) for p in points for k, i in p.observations.items()], int).reshape(-1, 2)
+        observations = [self.store.observations[j] for j in points]
+        counts = [len(o) for o in observations]
+        flat = np.array([(kidx.get(k, -1), i) for o in observations for k, i in o.items()], int).reshape(-1, 2)
         owner = np.repeat(np.arange(len(points)), counts)
         inside = flat[:, 0] >= 0
         flat, owner = flat[inside], owner[inside]
@@ -268,7 +281,7 @@ class LocalMapper:
         rows, orr, owner = rows[sel], orr[sel], owner[sel]
         oi, ok = flat[rows, 0], flat[rows, 1]
         oj = (np.cumsum(keep) - 1)[owner]
-        points = [p for p, k in zip(points, keep, strict=True) if k]
+        points = points[keep]
         uv = np.empty((len(oi), 2))
         for a, k in enumerate(kfs):
             for right, pixels in ((False, k.keypoints), (True, k.right)):
@@ -277,7 +290,7 @@ class LocalMapper:
                     uv[sel] = pixels[ok[sel]]
         return {"kfs": kfs, "points": points, "fixed": np.asarray(fixed, bool), "oi": oi, "oj": oj, "uv": uv,
                 "right": orr, "poses": np.array([k.T_cw for k in kfs]),
-                "positions": np.array([p.position for p in points])}
+                "positions": self.store.position[points]}
 
     def _solve(self, problem: dict, iterations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         K_r, T_c0_c1 = (self.rig[0], self.rig[1]) if self.rig is not None else (None, None)
@@ -292,25 +305,26 @@ class LocalMapper:
         for k, T, f in zip(kfs, poses, problem["fixed"], strict=True):
             if not f:
                 k.T_cw = T
-        for p, x in zip(points, pts, strict=True):
-            p.position = x
+        s = self.store
+        s.position[points] = pts
         for a, j in {(int(a), int(j)) for a, j in zip(oi[~inl], oj[~inl], strict=True)}:
-            k, p = kfs[a], points[j]
-            if k in p.observations:
-                k.points[p.observations.pop(k)] = None
-                if len(p.observations) < 2:
-                    k.map.resolved().remove_point(p)  # the problem's map (tracking may have started a new one)
+            k, observations = kfs[a], s.observations[points[j]]
+            if k in observations:
+                k.points[observations.pop(k)] = -1
+                if len(observations) < 2:
+                    k.map.resolved().remove_point(points[j])  # the problem's map (tracking may have started a new one)
 
     # --- keyframe culling --------------------------------------------------------------------------------------
     def _cull_keyframes(self, kf: KeyFrame) -> None:
         for n in self.map.neighbours(kf):
             if n is self.map.keyframes[0] or n is kf or n.loop_edges:
                 continue
-            pts = n.alive_points()
+            s = self.store
+            pts = s.alive(n.points)
             if self.rig is not None and n.depth is not None:
-                pts = [p for p in pts if np.isfinite(n.depth[p.observations[n]])]
+                pts = [j for j in pts if np.isfinite(n.depth[s.observations[j][n]])]
             if len(pts) < 20:
                 continue
-            redundant = sum(1 for p in pts if len(p.observations) - 1 >= 3)
+            redundant = sum(1 for j in pts if len(s.observations[j]) - 1 >= 3)
             if redundant > self.cfg.redundancy * len(pts):
                 self.map.remove_keyframe(n)

@@ -26,7 +26,7 @@ import numpy as np
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
-from ruslam.slam.map import KeyFrame, Map, MapPoint, inverse_pose, transform, update_normals
+from ruslam.slam.map import KeyFrame, Map, inverse_pose, transform, update_normals
 from ruslam.slam.optimization import pose_graph_optimization
 
 log = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ class LoopCloser:
             out += self.database.query(kf.global_descriptor, c.merge_top_k, set(out), c.min_score, maps=others)
         return out
 
-    def _merge(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: list[MapPoint]) -> None:
+    def _merge(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: np.ndarray) -> None:
         """Move the active map into cand's map (x_target = S x_active), then fuse and link the joined region."""
         target = _map_of(cand)
         S = inverse_pose(S12 @ cand.T_cw) @ kf.T_cw
@@ -196,7 +196,8 @@ class LoopCloser:
     # --- verification ------------------------------------------------------------------------------------------
     def _verify(self, kf: KeyFrame, cand: KeyFrame):
         c = self.cfg
-        ia, ib = kf.matched_indices(), cand.matched_indices()
+        s = self.atlas.store
+        ia, ib = s.matched(kf), s.matched(cand)
         if len(ia) < c.min_matches or len(ib) < c.min_matches:
             return None
         a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
@@ -210,8 +211,8 @@ class LoopCloser:
         if len(a) < c.min_matches:
             log.debug("Candidate %s for %s rejected: %d descriptor matches.", cand, kf, len(a))
             return None
-        P1 = transform(kf.T_cw, np.stack([kf.points[i].position for i in a]))
-        P2 = transform(cand.T_cw, np.stack([cand.points[i].position for i in b]))
+        P1 = transform(kf.T_cw, s.position[kf.points[a]])
+        P2 = transform(cand.T_cw, s.position[cand.points[b]])
         out = sim3_ransac(P1, P2, kf.keypoints[a], cand.keypoints[b], kf.K, cand.K, with_scale=not self.stereo,
                           seed=self.seed + kf.id, min_inliers=c.min_inliers)
         if out is None:
@@ -219,22 +220,21 @@ class LoopCloser:
             return None
         S12, _ = out
         loop_kfs = [cand, *_map_of(cand).neighbours(cand, 10)]
-        loop_points = sorted({p for k in loop_kfs for p in k.alive_points()}, key=lambda p: p.id)
-        X = np.stack([p.position for p in loop_points])
+        loop_points = s.alive(np.unique(np.concatenate([k.points for k in loop_kfs])))
+        X = s.position[loop_points]
         Xc = transform(S12 @ cand.T_cw, X)
         z = Xc[:, 2]
         uv = Xc[:, :2] / np.where(z > 1e-9, z, 1e-9)[:, None] @ kf.K[:2, :2].T + kf.K[:2, 2]
         vis = np.nonzero((z > 0) & kf.in_image(uv))[0]
-        desc = np.stack([loop_points[i].descriptor for i in vis]) if len(vis) else kf.descriptors[:0]
-        ip, _ = match_in_windows(uv[vis], desc, kf.keypoints, kf.descriptors, c.search_radius, self.binary,
-                                 self.max_distance, ratio=0.9)
+        ip, _ = match_in_windows(uv[vis], s.descriptor[loop_points[vis]], kf.keypoints, kf.descriptors,
+                                 c.search_radius, self.binary, self.max_distance, ratio=0.9)
         if len(ip) < c.min_projected_matches:
             log.debug("Loop candidate %s for %s rejected: %d projected matches.", cand, kf, len(ip))
             return None
         return S12, loop_points
 
     # --- correction --------------------------------------------------------------------------------------------
-    def _correct(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: list[MapPoint]) -> None:
+    def _correct(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: np.ndarray) -> None:
         log.info("Loop closed: keyframe %d (frame %d) <-> keyframe %d (frame %d).", kf.id, kf.index, cand.id,
                  cand.index)
         self.map.update_connections(kf)
@@ -243,13 +243,14 @@ class LoopCloser:
         corrected = {kf: S12 @ cand.T_cw}
         for k in connected[1:]:
             corrected[k] = before[k] @ inverse_pose(before[kf]) @ corrected[kf]
-        corrected_by: dict[MapPoint, KeyFrame] = {}
+        s = self.atlas.store
+        corrected_by: dict[int, KeyFrame] = {}  # point id -> the keyframe whose correction moved it
         for k in connected:
             move = inverse_pose(corrected[k]) @ before[k]
-            for p in k.alive_points():
-                if p not in corrected_by:
-                    p.position = transform(move, p.position[None])[0]
-                    corrected_by[p] = k
+            for j in s.alive(k.points).tolist():
+                if j not in corrected_by:
+                    s.position[j] = transform(move, s.position[j][None])[0]
+                    corrected_by[j] = k
             k.T_cw = _rigid(corrected[k])
             k.scale /= _scale(corrected[k])
         previous = {k: set(self.map.neighbours(k)) for k in connected}
@@ -262,12 +263,12 @@ class LoopCloser:
         kf.loop_edges.add(cand)
         cand.loop_edges.add(kf)
         self._optimize_essential_graph(kf, cand, before, corrected, corrected_by, new_links)
-        update_normals(self.map.points, force=True)
+        update_normals(s, self.map.points, force=True)
         if self.cfg.global_bundle_adjustment:
             kfs = [k for k in self.map.keyframes if not k.is_bad]
             fixed = np.zeros(len(kfs), bool)
             fixed[0] = True
-            self.mapper.bundle_adjust(kfs, fixed, sorted(self.map.points, key=lambda p: p.id),
+            self.mapper.bundle_adjust(kfs, fixed, self.map.sorted_points(),
                                       self.cfg.global_ba_iterations)
         self.last_loop_id = kf.id
         self.loops.append((kf.index, cand.index))
@@ -300,15 +301,16 @@ class LoopCloser:
                     add(k, n, odometry)
         out = pose_graph_optimization(initial, np.array(edges), np.stack(rel), [idx[cand]],
                                       similarity=not self.stereo)
-        for p in self.map.points:
-            ref = corrected_by.get(p, p.reference)
+        s = self.atlas.store
+        for j in self.map.points:
+            ref = corrected_by.get(j, s.reference[j])
             if ref not in idx:
-                ref = next((k for k in p.observations if k in idx), None)
+                ref = next((k for k in s.observations[j] if k in idx), None)
                 if ref is None:
                     continue
             i = idx[ref]
-            frame_of_point = initial[i] if p in corrected_by else odometry[i]  # the pose the point agrees with
-            p.position = transform(inverse_pose(out[i]) @ frame_of_point, p.position[None])[0]
+            frame_of_point = initial[i] if j in corrected_by else odometry[i]  # the pose the point agrees with
+            s.position[j] = transform(inverse_pose(out[i]) @ frame_of_point, s.position[j][None])[0]
         for k, S, S0 in zip(kfs, out, initial, strict=True):
             k.T_cw = _rigid(S)
             k.scale *= _scale(S0) / _scale(S)

@@ -1,19 +1,21 @@
-"""Plain map types: Frame, KeyFrame, MapPoint and the Map with its covisibility graph (ORB-SLAM's vocabulary).
+"""Plain map types: Frame, KeyFrame, the PointStore of map points and the Map with its covisibility graph
+(ORB-SLAM's vocabulary).
 
 Poses are stored as ``T_cw`` (world -> camera 0), keypoints are undistorted pixel coordinates of the ideal pinhole
 ``K`` of camera 0. A stereo frame also carries, per keypoint, the matched undistorted right-image coordinate and the
 stereo depth (NaN where the keypoint has no stereo match). The Map owns one re-entrant lock that the threaded mode
 takes around every mapping step; the synchronous mode never contends for it.
 
-Rows of many objects (positions, descriptors) are gathered with `np.array(list)`: 2.4x faster than `np.stack` on
-the thousands of rows a frame gathers.
+Map points are rows of arrays (`PointStore`), named by their row: a frame's points are an index array, and the
+thousands of positions or descriptors a step needs are one slice, not a stack of per-point objects.
 """
 
 from __future__ import annotations
 
 import itertools
 import threading
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,13 +63,13 @@ class Frame:
     right: np.ndarray | None = None  # [N, 2] undistorted right pixels, NaN where no stereo match
     depth: np.ndarray | None = None  # [N] stereo depth in camera 0, NaN where none
     T_cw: np.ndarray | None = None
-    points: list = field(default_factory=list)  # [N] MapPoint | None
+    points: np.ndarray | None = None  # [N] map point ids (rows of the run's `PointStore`), -1 = none
     outliers: np.ndarray | None = None  # [N] bool, set by pose optimisation
 
     def __post_init__(self):
         n = len(self.keypoints)
-        if not self.points:
-            self.points = [None] * n
+        if self.points is None:
+            self.points = np.full(n, -1, np.int64)
         if self.outliers is None:
             self.outliers = np.zeros(n, bool)
 
@@ -79,12 +81,8 @@ class Frame:
         R, t = self.T_cw[:3, :3], self.T_cw[:3, 3]
         return -(R.T @ t)
 
-    def alive_points(self) -> list:
-        """Its map points, without the culled and fused-away ones."""
-        return [p for p in self.points if p is not None and not p.is_bad]
-
-    def matched_indices(self) -> np.ndarray:
-        return np.array([i for i, p in enumerate(self.points) if p is not None and not p.is_bad], dtype=int)
+    def clear_points(self) -> None:
+        self.points = np.full(len(self), -1, np.int64)
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points [M, 3] -> (pixels [M, 2], depths [M])."""
@@ -98,18 +96,6 @@ class Frame:
         return (uv[:, 0] >= border) & (uv[:, 1] >= border) & (uv[:, 0] < w - border) & (uv[:, 1] < h - border)
 
 
-@dataclass
-class Numbering:
-    """The ids of one run's keyframes and points, shared by all the maps of its Atlas, from 0 in every run.
-
-    Ids seed loop closing's RANSAC and order sets of keyframes and points; counters shared by the whole process
-    made a run's result depend on what had run before it in the same process (a grid cell alone or after another).
-    """
-
-    keyframes: itertools.count = field(default_factory=itertools.count)
-    points: itertools.count = field(default_factory=itertools.count)
-
-
 class KeyFrame(Frame):
     """A frame kept in the map; `id` is unique in its run and increasing in insertion order (`Map.new_keyframe`)."""
 
@@ -118,7 +104,7 @@ class KeyFrame(Frame):
             index=frame.index, timestamp=frame.timestamp, keypoints=frame.keypoints,
             descriptors=frame.descriptors, K=frame.K, image_size=frame.image_size,
             global_descriptor=frame.global_descriptor, right=frame.right, depth=frame.depth,
-            T_cw=frame.T_cw.copy(), points=list(frame.points),
+            T_cw=frame.T_cw.copy(), points=frame.points.copy(),
         )
         self.id = id
         self.is_bad = False
@@ -150,80 +136,138 @@ class KeyFrame(Frame):
         return self.scale * self.parent.current_scale() / self.T_parent_scale
 
 
-class MapPoint:
-    def __init__(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame, id: int):
-        self.id = id
-        self.position = np.asarray(position, dtype=np.float64)
-        self.descriptor = descriptor
-        self.reference = reference  # keyframe that created it (for loop correction)
-        self.observations: dict[KeyFrame, int] = {}
-        self.normal = np.zeros(3)
-        self.is_bad = False
-        self.visible = 1  # frames in whose frustum it fell
-        self.found = 1  # frames where it was matched
-        self.first_kf_id = reference.id
-        self.replaced_by: MapPoint | None = None
-        self._normal_key = self._descriptor_key = None  # what the cached normal/descriptor were computed from
+class PointStore:
+    """Every map point of one run as a row of arrays (its id), shared by the maps of the run's Atlas.
 
-    def __hash__(self) -> int:
-        return self.id
+    Frames hold point ids (`Frame.points`, -1 = none); the steps that need many points at once (projection,
+    matching, bundle adjustment) slice these arrays instead of stacking per-point objects. Ids count from 0 in
+    every run: they order sets and seed nothing that depends on an earlier run in the same process. A row is never
+    reused: a culled point keeps it with `bad` set, a fused-away one also points to its survivor (`replaced_by`).
+    """
 
-    def add_observation(self, kf: KeyFrame, index: int) -> None:
-        self.observations[kf] = index
-        kf.points[index] = self
+    def __init__(self, capacity: int = 1024):
+        self.size = 0
+        self.position = np.zeros((capacity, 3))
+        self.normal = np.zeros((capacity, 3))
+        self.descriptor: np.ndarray | None = None  # [capacity, D], the extractor's dtype (set by the first point)
+        self.visible = np.zeros(capacity, np.int64)  # frames in whose frustum it fell
+        self.found = np.zeros(capacity, np.int64)  # frames where it was matched
+        self.bad = np.zeros(capacity, bool)
+        self.first_kf_id = np.zeros(capacity, np.int64)
+        self.replaced_by = np.full(capacity, -1, np.int64)
+        self.observations: list[dict[KeyFrame, int]] = []  # per point: observing keyframe -> keypoint index
+        self.reference: list[KeyFrame] = []  # the keyframe that created it (for loop correction)
+        self.normal_key: list = []  # what the cached normal / descriptor were computed from
+        self.descriptor_key: list = []
 
-    def set_normal(self, normal: np.ndarray) -> None:
-        """A normal computed elsewhere (all new points of a triangulation at once) for the current observers."""
-        self.normal = normal
-        self._normal_key = tuple(kf.id for kf in self.observations)
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame) -> int:
+        j = self.size
+        if self.descriptor is None:
+            self.descriptor = np.zeros((len(self.position), len(descriptor)), descriptor.dtype)
+        if j == len(self.position):
+            self._grow()
+        self.position[j] = position
+        self.normal[j] = 0.0
+        self.descriptor[j] = descriptor
+        self.visible[j] = self.found[j] = 1
+        self.first_kf_id[j] = reference.id
+        self.observations.append({})
+        self.reference.append(reference)
+        self.normal_key.append(None)
+        self.descriptor_key.append(None)
+        self.size += 1
+        return j
+
+    def _grow(self) -> None:
+        for name in ("position", "normal", "descriptor", "visible", "found", "bad", "first_kf_id", "replaced_by"):
+            a = getattr(self, name)
+            grown = np.full((2 * len(a), *a.shape[1:]), -1 if name == "replaced_by" else 0, a.dtype)
+            grown[: len(a)] = a
+            setattr(self, name, grown)
+
+    def add_observation(self, j: int, kf: KeyFrame, index: int) -> None:
+        self.observations[j][kf] = index
+        kf.points[index] = j
+
+    def alive(self, ids: np.ndarray) -> np.ndarray:
+        """The ids that name a live point (not -1, not culled or fused away), in their order."""
+        ids = ids[ids >= 0]
+        return ids[~self.bad[ids]]
+
+    def matched(self, frame: Frame) -> np.ndarray:
+        """Keypoint indices of `frame` with a live point."""
+        ids = frame.points
+        ok = ids >= 0
+        ok[ok] = ~self.bad[ids[ok]]
+        return np.nonzero(ok)[0]
+
+    def resolve(self, ids: np.ndarray) -> np.ndarray:
+        """Each id followed through fusions to its surviving point; -1 for a culled one."""
+        out = ids.copy()
+        while True:
+            stale = out >= 0
+            stale[stale] = self.bad[out[stale]]
+            if not stale.any():
+                return out
+            out[stale] = self.replaced_by[out[stale]]
+
+    def num_observations(self, ids) -> np.ndarray:
+        return np.array([len(self.observations[j]) for j in ids], np.int64)
+
+    def set_normals(self, ids: np.ndarray, normals: np.ndarray) -> None:
+        """Normals computed elsewhere (all new points of a triangulation at once) for the current observers."""
+        self.normal[ids] = normals
+        for j in ids:
+            self.normal_key[j] = tuple(kf.id for kf in self.observations[j])
 
 
-def update_normals(points, force: bool = False) -> None:
+def update_normals(store: PointStore, ids, force: bool = False) -> None:
     """Each point's mean viewing direction over its observing keyframes (for the viewing-angle test of the search).
 
     Recomputed where the observing keyframes changed (or `force`, after a loop correction moved the points); the
     small moves of a local BA do not matter to a 60-degree viewing-angle test. Points with the same number of
     observers are done in one batch.
     """
-    stale: dict[int, list[MapPoint]] = {}
-    for p in points:
-        key = tuple(kf.id for kf in p.observations)
-        if key and (force or key != p._normal_key):
-            p._normal_key = key
-            stale.setdefault(len(key), []).append(p)
-    observers = {kf for group in stale.values() for p in group for kf in p.observations}
+    stale: dict[int, list[int]] = {}
+    for j in ids:
+        key = tuple(kf.id for kf in store.observations[j])
+        if key and (force or key != store.normal_key[j]):
+            store.normal_key[j] = key
+            stale.setdefault(len(key), []).append(j)
+    observers = {kf for group in stale.values() for j in group for kf in store.observations[j]}
     centres = {kf: kf.center for kf in observers}
     for group in stale.values():
-        C = np.array([centres[kf] for p in group for kf in p.observations]).reshape(len(group), -1, 3)
-        d = np.array([p.position for p in group])[:, None] - C
+        C = np.array([centres[kf] for j in group for kf in store.observations[j]]).reshape(len(group), -1, 3)
+        d = store.position[group][:, None] - C
         d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
         n = d.sum(1)
         n /= np.maximum(np.sqrt((n * n).sum(1)), 1e-12)[:, None]
-        for p, normal in zip(group, n, strict=True):
-            p.normal = normal
+        store.normal[group] = n
 
 
-def update_descriptors(points, binary: bool) -> None:
+def update_descriptors(store: PointStore, ids, binary: bool) -> None:
     """Each point's descriptor: the observation descriptor with the least median distance to the others (ORB-SLAM's
     choice), recomputed only where the observations changed. Points with the same number of observations are done
     in one batch (a keyframe's few thousand points: ~50 batched products instead of one small product per point).
     """
-    stale: dict[int, list[MapPoint]] = {}
-    for p in points:
-        key = tuple((kf.id, i) for kf, i in p.observations.items())
-        if key != p._descriptor_key and key:
-            p._descriptor_key = key
-            stale.setdefault(len(key), []).append(p)
+    stale: dict[int, list[int]] = {}
+    for j in ids:
+        key = tuple((kf.id, i) for kf, i in store.observations[j].items())
+        if key != store.descriptor_key[j] and key:
+            store.descriptor_key[j] = key
+            stale.setdefault(len(key), []).append(j)
     for n, group in stale.items():
-        descs = np.array([kf.descriptors[i] for p in group for kf, i in p.observations.items()])
+        descs = np.array([kf.descriptors[i] for j in group for kf, i in store.observations[j].items()])
         descs = descs.reshape(len(group), n, -1)  # [points, observations, descriptor]
         if n < 3:
             best = np.full(len(group), n - 1)
         else:
             d = np.sort(_batched_distances(descs, binary), axis=2)
             best = np.argmin(d[:, :, (n - 1) // 2], axis=1)  # lower median, as ORB-SLAM
-        for p, desc in zip(group, descs[np.arange(len(group)), best], strict=True):
-            p.descriptor = desc
+        store.descriptor[group] = descs[np.arange(len(group)), best]
 
 
 def _batched_distances(descs: np.ndarray, binary: bool) -> np.ndarray:
@@ -237,13 +281,16 @@ def _batched_distances(descs: np.ndarray, binary: bool) -> np.ndarray:
 
 
 class Map:
-    """One connected map. Several live in an Atlas (`ruslam.slam.atlas`); they share one lock."""
+    """One connected map: its keyframes, the ids of its points (rows of the run's `PointStore`, shared by the maps of
+    an Atlas with its lock and keyframe numbering) and the covisibility graph."""
 
-    def __init__(self, lock: threading.RLock | None = None, id: int = 0, numbering: Numbering | None = None):
+    def __init__(self, lock: threading.RLock | None = None, id: int = 0, store: PointStore | None = None,
+                 keyframe_ids: Iterator[int] | None = None):
         self.id = id
-        self.numbering = numbering or Numbering()
+        self.store = store if store is not None else PointStore()
+        self.keyframe_ids = keyframe_ids if keyframe_ids is not None else itertools.count()  # from 0 in every run
         self.keyframes: list[KeyFrame] = []  # insertion order, culled ones removed
-        self.points: set[MapPoint] = set()
+        self.points: set[int] = set()
         self.covisibility: dict[KeyFrame, dict[KeyFrame, int]] = {}
         self.lock = lock or threading.RLock()
         self.merged_into: Map | None = None
@@ -258,9 +305,12 @@ class Map:
     def __repr__(self) -> str:
         return f"Map(id={self.id}, keyframes={len(self.keyframes)})"
 
+    def sorted_points(self) -> np.ndarray:
+        return np.array(sorted(self.points), np.int64)
+
     # --- keyframes -------------------------------------------------------------------------------------------
     def new_keyframe(self, frame: Frame) -> KeyFrame:
-        kf = KeyFrame(frame, next(self.numbering.keyframes))
+        kf = KeyFrame(frame, next(self.keyframe_ids))
         self.add_keyframe(kf)
         return kf
 
@@ -272,10 +322,8 @@ class Map:
     def update_connections(self, kf: KeyFrame, min_weight: int = 15) -> None:
         """Covisibility weights = number of shared map points; spanning-tree parent = strongest older neighbour."""
         counts: dict[KeyFrame, int] = {}
-        for p in kf.points:
-            if p is None or p.is_bad:
-                continue
-            for other in p.observations:
+        for j in self.store.alive(kf.points):
+            for other in self.store.observations[j]:
                 if other is not kf and not other.is_bad:
                     counts[other] = counts.get(other, 0) + 1
         if not counts:
@@ -306,12 +354,12 @@ class Map:
         """Cull: drop its observations, re-parent its children, remember its pose relative to its parent."""
         if kf.parent is None:
             return  # the first keyframe anchors the map
-        for i, p in enumerate(kf.points):
-            if p is not None:
-                p.observations.pop(kf, None)
-                if len(p.observations) < 2 and not p.is_bad:
-                    self.remove_point(p)
-            kf.points[i] = None
+        for j in kf.points[kf.points >= 0]:
+            observations = self.store.observations[j]
+            observations.pop(kf, None)
+            if len(observations) < 2 and not self.store.bad[j]:
+                self.remove_point(j)
+        kf.points[:] = -1
         for child in self.children(kf):
             child.parent = kf.parent
         kf.T_parent = kf.T_cw @ inverse_pose(kf.parent.T_cw)
@@ -322,34 +370,36 @@ class Map:
         self.keyframes.remove(kf)
 
     # --- points ----------------------------------------------------------------------------------------------
-    def new_point(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame) -> MapPoint:
-        p = MapPoint(position, descriptor, reference, next(self.numbering.points))
-        self.add_point(p)
-        return p
+    def new_point(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame) -> int:
+        j = self.store.add(position, descriptor, reference)
+        self.points.add(j)
+        return j
 
-    def add_point(self, p: MapPoint) -> None:
-        self.points.add(p)
+    def add_point(self, j: int) -> None:
+        self.points.add(j)
 
-    def remove_point(self, p: MapPoint) -> None:
-        p.is_bad = True
-        for kf, i in p.observations.items():
-            if kf.points[i] is p:
-                kf.points[i] = None
-        p.observations = {}
-        self.points.discard(p)
+    def remove_point(self, j: int) -> None:
+        self.store.bad[j] = True
+        for kf, i in self.store.observations[j].items():
+            if kf.points[i] == j:
+                kf.points[i] = -1
+        self.store.observations[j] = {}
+        self.points.discard(j)
 
-    def replace_point(self, old: MapPoint, new: MapPoint) -> None:
+    def replace_point(self, old: int, new: int) -> None:
         """Merge a duplicate: `new` inherits every observation of `old` (fusion and loop correction)."""
-        if old is new:
+        if old == new:
             return
-        for kf, i in list(old.observations.items()):
-            if kf in new.observations:
-                kf.points[i] = None
+        s = self.store
+        new_obs = s.observations[new]
+        for kf, i in list(s.observations[old].items()):
+            if kf in new_obs:
+                kf.points[i] = -1
             else:
-                new.add_observation(kf, i)
-        new.visible += old.visible
-        new.found += old.found
-        old.observations = {}
-        old.is_bad = True
-        old.replaced_by = new
+                s.add_observation(new, kf, i)
+        s.visible[new] += s.visible[old]
+        s.found[new] += s.found[old]
+        s.observations[old] = {}
+        s.bad[old] = True
+        s.replaced_by[old] = new
         self.points.discard(old)

@@ -24,7 +24,7 @@ import numpy as np
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
-from ruslam.slam.map import Frame, KeyFrame, Map, MapPoint, inverse_pose, scale_translation, transform, update_normals
+from ruslam.slam.map import Frame, KeyFrame, Map, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
 log = logging.getLogger(__name__)
@@ -69,13 +69,6 @@ def _interpolated(T1: np.ndarray, T2: np.ndarray, a: float) -> np.ndarray:
     return gtsam.Pose3.Expmap(a * step).matrix() @ T1
 
 
-def _alive(p: MapPoint | None) -> MapPoint | None:
-    """Follow fusions to the surviving point; None for a culled one."""
-    while p is not None and p.is_bad:
-        p = p.replaced_by
-    return p
-
-
 class Tracker:
     def __init__(self, atlas: Atlas, keyframes, bundle_adjust, database, cfg: TrackingConfig, binary: bool, rig=None,
                  seed: int = 0, pair_matcher=None):
@@ -105,6 +98,10 @@ class Tracker:
     def map(self) -> Map:
         return self.atlas.active
 
+    @property
+    def store(self):
+        return self.atlas.store
+
     # --- entry point -------------------------------------------------------------------------------------------
     def track(self, frame: Frame) -> bool:
         """Estimate `frame.T_cw`; True when the frame is tracked against the (active) map."""
@@ -125,7 +122,7 @@ class Tracker:
                 ok = self._track_local_map(frame)
                 if not ok:
                     log.debug("Frame %d: local map tracking failed (%d inliers).", frame.index,
-                              int(np.sum([p is not None for p in frame.points]) - frame.outliers.sum()))
+                              int(np.count_nonzero(frame.points >= 0) - frame.outliers.sum()))
             elif self.state == "ok":
                 log.debug("Frame %d: frame-to-frame tracking failed.", frame.index)
             if not ok:
@@ -162,7 +159,7 @@ class Tracker:
         self.state, self.lost_count, self.init_frame, self.init_pending = "init", 0, None, []
         self.last_ref = self.reference = None
         if self.rig is None and len(frame) >= self.cfg.init_min_matches:
-            frame.points = [None] * len(frame)
+            frame.clear_points()
             self.init_frame = frame  # the reference of the new map's initialisation
 
     def _relocalize_in_lost_map(self, frame: Frame) -> bool:
@@ -184,7 +181,7 @@ class Tracker:
         frame.T_cw = np.eye(4)
         kf = self.map.new_keyframe(frame)
         self._add_stereo_points(kf, all_points=True)
-        frame.points = list(kf.points)
+        frame.points = kf.points.copy()
         self._start(frame, kf, [kf])
         return True
 
@@ -220,21 +217,20 @@ class Tracker:
         ref.T_cw, frame.T_cw = np.eye(4), T2
         kf1, kf2 = self.map.new_keyframe(ref), self.map.new_keyframe(frame)
         for a, b, x in zip(ip[good], ik[good], X[good], strict=True):
-            p = self.map.new_point(x, frame.descriptors[b], kf1)
-            p.add_observation(kf1, int(a))
-            p.add_observation(kf2, int(b))
-        self.bundle_adjust([kf1, kf2], np.array([True, False]), sorted(self.map.points, key=lambda p: p.id), (10, 10))
-        seen = [p.position for p in kf1.points if p is not None]
-        median = float(np.median(transform(kf1.T_cw, np.stack(seen))[:, 2])) if seen else 0.0
-        if median <= 0 or sum(p is not None for p in kf2.points) < c.init_min_matches // 2:
+            j = self.map.new_point(x, frame.descriptors[b], kf1)
+            self.store.add_observation(j, kf1, int(a))
+            self.store.add_observation(j, kf2, int(b))
+        self.bundle_adjust([kf1, kf2], np.array([True, False]), self.map.sorted_points(), (10, 10))
+        seen = kf1.points[kf1.points >= 0]
+        median = float(np.median(transform(kf1.T_cw, self.store.position[seen])[:, 2])) if len(seen) else 0.0
+        if median <= 0 or np.count_nonzero(kf2.points >= 0) < c.init_min_matches // 2:
             log.warning("Frame %d: monocular initialisation rejected after bundle adjustment.", frame.index)
             self._reset()
             return False
-        for p in self.map.points:  # unit median depth, as ORB-SLAM
-            p.position = p.position / median
+        self.store.position[list(self.map.points)] /= median  # unit median depth, as ORB-SLAM
         kf2.T_cw[:3, 3] /= median
         frame.T_cw = kf2.T_cw.copy()
-        frame.points = list(kf2.points)
+        frame.points = kf2.points.copy()
         log.info("Initialised (%s) from frames %d and %d with %d points.", model, ref.index, frame.index,
                  len(self.map.points))
         self._start(frame, kf2, [kf1, kf2])
@@ -250,10 +246,10 @@ class Tracker:
         """The frames between the two initial keyframes, matched to the new map in windows around the pose
         interpolated between the two keyframes; kept for `pose_initial_gaps` when the pose optimisation finds
         `min_inliers`."""
-        points = sorted(self.map.points, key=lambda p: p.id)
+        points = self.map.sorted_points()
         for f in self.init_pending:
             f.T_cw = _interpolated(kf1.T_cw, kf2.T_cw, (f.index - kf1.index) / (kf2.index - kf1.index))
-            f.points = [None] * len(f)
+            f.clear_points()
             if self._search_points(f, points, self.cfg.window_radius) >= 20 and \
                     self._optimize(f) >= self.cfg.min_inliers:
                 self._drop_outliers(f)
@@ -269,7 +265,7 @@ class Tracker:
         out = []
         for f, kf1, kf2 in self.initial_gaps:
             reference = next((k for k in (kf2, kf1) if not k.is_bad), None)  # a live one: records are relative
-            f.points = [_alive(p) for p in f.points]
+            f.points = self.store.resolve(f.points)
             f.T_cw = _interpolated(kf1.pose(), kf2.pose(), (f.index - kf1.index) / (kf2.index - kf1.index))
             if reference is not None and self._optimize(f) >= self.cfg.min_inliers:
                 out.append((f, reference))
@@ -299,9 +295,10 @@ class Tracker:
         self.last.T_cw = scale_translation(T_lr, ratio) @ ref.pose()  # the reference may have moved too
         if self.velocity is not None:
             frame.T_cw = scale_translation(self.velocity, ratio) @ self.last.T_cw
-            pts = [p for p in map(_alive, self.last.points) if p is not None]
+            pts = self.store.resolve(self.last.points)
+            pts = pts[pts >= 0]
             for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
-                frame.points = [None] * len(frame)
+                frame.clear_points()
                 if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
                     return True
@@ -322,15 +319,15 @@ class Tracker:
     def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
         """Last fallback: the local map's points matched by descriptor, no window, pose by PnP RANSAC."""
         local = [self.reference, *self.map.neighbours(self.reference, self.cfg.local_keyframes)]
-        points = sorted({p for kf in local for p in kf.points if p is not None and not p.is_bad}, key=lambda p: p.id)
+        points = self.store.alive(np.unique(np.concatenate([kf.points for kf in local])))
         if len(points) < 15:
             return False
-        ia, ib = match_knn_ratio(np.array([p.descriptor for p in points]), frame.descriptors, self.binary,
-                                 self.max_distance, self.cfg.ratio)
+        ia, ib = match_knn_ratio(self.store.descriptor[points], frame.descriptors, self.binary, self.max_distance,
+                                 self.cfg.ratio)
         if len(ia) < 15:
             return False
-        frame.points = [None] * len(frame)
-        return self._pnp(frame, [points[a] for a in ia], ib)
+        frame.clear_points()
+        return self._pnp(frame, points[ia], ib)
 
     def _track_by_descriptor(self, frame: Frame, ref: Frame, match) -> bool:
         """Fallback: `ref`'s map points matched by `match` (kNN + ratio, or the pair matcher) in `frame` (ref: the
@@ -338,18 +335,18 @@ class Tracker:
         last pose if that fails). PnP comes first: in a turn the last pose is several degrees off, and from there
         noisy matches (ORB on low-contrast texture) pulled the pose optimisation into a wrong minimum that the map
         then kept (DEV lowtex, BENCHMARKS.md)."""
-        frame.points = [None] * len(frame)
-        idx = np.array([i for i, p in enumerate(map(_alive, ref.points)) if p is not None], int)
+        frame.clear_points()
+        resolved = self.store.resolve(ref.points)
+        idx = np.nonzero(resolved >= 0)[0]
         if len(idx) == 0:
             return False
         ia, ib = match(ref, idx, frame)
         if len(ia) < 15:
             return False
-        points = [_alive(ref.points[a]) for a in idx[ia]]
+        points = resolved[idx[ia]]
         if self._pnp(frame, points, ib):
             return True
-        for p, b in zip(points, ib, strict=True):
-            frame.points[b] = p
+        frame.points[ib] = points
         frame.T_cw = self.last.T_cw.copy()
         return self._optimize(frame) >= 10
 
@@ -371,24 +368,24 @@ class Tracker:
         keep = position[ia] >= 0
         return position[ia[keep]], ib[keep]
 
-    def _pnp(self, frame: Frame, points: list[MapPoint], kp_idx: np.ndarray) -> bool:
-        X = np.array([p.position for p in points])
-        out = solve_pnp_ransac(X, frame.keypoints[kp_idx], frame.K, seed=self.seed + frame.index)
+    def _pnp(self, frame: Frame, points: np.ndarray, kp_idx: np.ndarray) -> bool:
+        """Pose of `frame` from map point ids matched to its keypoints `kp_idx`, by PnP RANSAC."""
+        out = solve_pnp_ransac(self.store.position[points], frame.keypoints[kp_idx], frame.K,
+                               seed=self.seed + frame.index)
         if out is None:
             return False
         frame.T_cw, inliers = out
-        frame.points = [None] * len(frame)
-        for p, k in zip(np.array(points, dtype=object)[inliers], kp_idx[inliers], strict=True):
-            frame.points[k] = p
+        frame.clear_points()
+        frame.points[kp_idx[inliers]] = points[inliers]
         return self._optimize(frame) >= 10
 
     # --- local map ---------------------------------------------------------------------------------------------
     def _track_local_map(self, frame: Frame) -> bool:
         counts: dict[KeyFrame, int] = {}
-        for p in frame.points:
-            if p is not None and not p.is_bad:
-                for kf in p.observations:
-                    counts[kf] = counts.get(kf, 0) + 1
+        observations = self.store.observations
+        for j in self.store.alive(frame.points):
+            for kf in observations[j]:
+                counts[kf] = counts.get(kf, 0) + 1
         if not counts:
             return False
         local = sorted(counts, key=lambda k: -counts[k])[: self.cfg.local_keyframes]
@@ -398,47 +395,42 @@ class Tracker:
                 if n not in counts and len(local) < 2 * self.cfg.local_keyframes:
                     counts[n] = 0
                     local.append(n)
-        seen = set().union(*(kf.points for kf in local)) - set(frame.points)  # up to 40 keyframes' slots
-        candidates = sorted((p for p in seen if p is not None and not p.is_bad), key=lambda p: p.id)
+        seen = np.unique(np.concatenate([kf.points for kf in local]))  # up to 40 keyframes' slots
+        candidates = self.store.alive(seen[~np.isin(seen, frame.points)])
         self._search_points(frame, candidates, self.cfg.local_map_radius, count_visible=True)
         inliers = self._optimize(frame)
         log.debug("Frame %d: local map, %d inliers of %d matches.", frame.index, inliers,
-                  sum(p is not None for p in frame.points))
-        for p, out in zip(frame.points, frame.outliers, strict=True):
-            if p is not None and not out:
-                p.found += 1
+                  np.count_nonzero(frame.points >= 0))
+        np.add.at(self.store.found, frame.points[(frame.points >= 0) & ~frame.outliers], 1)
         return inliers >= self.cfg.min_inliers
 
-    def _search_points(self, frame: Frame, points: list[MapPoint], radius: float, count_visible=False) -> int:
-        """Project map points with frame.T_cw and match them in windows; returns the number of matched points."""
-        if points:
-            X = np.array([p.position for p in points])
+    def _search_points(self, frame: Frame, points: np.ndarray, radius: float, count_visible=False) -> int:
+        """Project map points (ids) with frame.T_cw and match them in windows; returns the number of matched points."""
+        if len(points):
+            X = self.store.position[points]
             uv, z = frame.project(X)
             centre = frame.center
             rays = X - centre
             dist = np.linalg.norm(rays, axis=1)
-            normals = np.array([p.normal for p in points])
+            normals = self.store.normal[points]
             cos = np.sum(rays * normals, 1) / np.maximum(dist, 1e-12)
             visible = (z > 0) & frame.in_image(uv) & ((cos > 0.5) | (np.abs(normals).sum(1) == 0))
             vis = np.nonzero(visible)[0]
             if count_visible:
-                for i in vis:
-                    points[i].visible += 1
-            desc = np.array([points[i].descriptor for i in vis]) if len(vis) else frame.descriptors[:0]
-            free = np.array([p is None for p in frame.points], bool)
-            ip, ik = match_in_windows(uv[vis], desc, frame.keypoints, frame.descriptors, radius, self.binary,
-                                      self.max_distance, self.cfg.window_ratio, available=free)
-            for a, b in zip(vis[ip], ik, strict=True):
-                frame.points[b] = points[a]
-        return sum(p is not None for p in frame.points)
+                np.add.at(self.store.visible, points[vis], 1)
+            ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
+                                      radius, self.binary, self.max_distance, self.cfg.window_ratio,
+                                      available=frame.points < 0)
+            frame.points[ik] = points[vis[ip]]
+        return int(np.count_nonzero(frame.points >= 0))
 
     def _optimize(self, frame: Frame) -> int:
         """Motion-only pose optimisation over the frame's matches; returns the number of inliers."""
-        idx = np.array([i for i, p in enumerate(frame.points) if p is not None], int)
+        idx = np.nonzero(frame.points >= 0)[0]
         frame.outliers = np.zeros(len(frame), bool)
         if len(idx) < 6:
             return 0
-        X = np.array([frame.points[i].position for i in idx])
+        X = self.store.position[frame.points[idx]]
         uv_r = frame.right[idx] if self.rig is not None and frame.right is not None else None
         K_r, T_c1_c0 = (self.rig[0], inverse_pose(self.rig[1])) if self.rig is not None else (None, None)
         T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma)
@@ -447,8 +439,7 @@ class Tracker:
         return int(inl.sum())
 
     def _drop_outliers(self, frame: Frame) -> None:
-        for i in np.nonzero(frame.outliers)[0]:
-            frame.points[i] = None
+        frame.points[frame.outliers] = -1
         frame.outliers[:] = False
 
     # --- keyframes ---------------------------------------------------------------------------------------------
@@ -456,13 +447,14 @@ class Tracker:
         c = self.cfg
         since = frame.index - self.last_kf_index
         min_obs = 2 if len(self.map.keyframes) <= 2 else 3
-        ref_points = sum(1 for p in self.reference.points if p is not None and len(p.observations) >= min_obs)
-        tracked = sum(p is not None for p in frame.points)
+        ref_ids = self.reference.points[self.reference.points >= 0]
+        ref_points = int(np.count_nonzero(self.store.num_observations(ref_ids) >= min_obs))
+        tracked = int(np.count_nonzero(frame.points >= 0))
         ratio = c.kf_ratio_stereo if self.rig is not None else c.kf_ratio_mono
         need_close = False
         if self.rig is not None and frame.depth is not None:
             close = frame.depth < c.stereo_close_baselines * np.linalg.norm(self.rig[1][:3, 3])
-            has = np.array([p is not None for p in frame.points])
+            has = frame.points >= 0
             need_close = np.sum(close & has) < 100 and np.sum(close & ~has) > 70
         weak = tracked < ratio * ref_points or need_close
         # ORB-SLAM inserts when local mapping is idle; run inline, mapping is always idle and every frame would
@@ -486,7 +478,7 @@ class Tracker:
         """ORB-SLAM's close stereo points: new map points from stereo depth for unmatched keypoints."""
         if kf.depth is None:
             return
-        free = np.array([p is None for p in kf.points]) & np.isfinite(kf.depth)
+        free = (kf.points < 0) & np.isfinite(kf.depth)
         idx = np.nonzero(free)[0]
         idx = idx[np.argsort(kf.depth[idx], kind="stable")]
         if not all_points:
@@ -497,10 +489,10 @@ class Tracker:
         new = []
         for i in idx:
             xc = Kinv @ np.r_[kf.keypoints[i], 1.0] * kf.depth[i]
-            p = self.map.new_point(T_wc[:3, :3] @ xc + T_wc[:3, 3], kf.descriptors[i], kf)
-            p.add_observation(kf, int(i))
-            new.append(p)
-        update_normals(new)
+            j = self.map.new_point(T_wc[:3, :3] @ xc + T_wc[:3, 3], kf.descriptors[i], kf)
+            self.store.add_observation(j, kf, int(i))
+            new.append(j)
+        update_normals(self.store, new)
 
     # --- relocalisation ----------------------------------------------------------------------------------------
     def _relocalize(self, frame: Frame, in_map: Map) -> bool:
@@ -512,16 +504,16 @@ class Tracker:
                                               maps=[in_map])
         for match in self._matchers():  # every candidate by kNN first, then by the pair matcher
             for kf in candidates:
-                idx = kf.matched_indices()
+                idx = self.store.matched(kf)
                 if len(idx) < 15:
                     continue
                 ia, ib = match(kf, idx, frame)
                 if len(ia) < 15:
                     continue
-                frame.points = [None] * len(frame)
-                if not self._pnp(frame, [kf.points[a] for a in idx[ia]], ib):
+                frame.clear_points()
+                if not self._pnp(frame, kf.points[idx[ia]], ib):
                     continue
-                self._search_points(frame, [p for p in kf.points if p is not None and not p.is_bad], 10.0)
+                self._search_points(frame, self.store.alive(kf.points), 10.0)
                 if self._optimize(frame) >= 50:
                     log.info("Frame %d relocalised against keyframe %d.", frame.index, kf.id)
                     self.reference = kf
