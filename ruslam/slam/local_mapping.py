@@ -184,7 +184,7 @@ class LocalMapper:
         for t in targets:
             self.fuse_points(t, s.alive(kf.points))
         if targets:
-            self.fuse_points(kf, s.alive(np.unique(np.concatenate([t.points for t in targets]))))
+            self.fuse_points(kf, s.seen_by(targets))
         points = s.alive(kf.points)
         update_descriptors(s, points, self.binary)
         update_normals(s, points)
@@ -229,7 +229,7 @@ class LocalMapper:
     def _local_ba_problem(self, kf: KeyFrame) -> dict | None:
         c = self.cfg
         local = [kf, *self.map.neighbours(kf, c.ba_keyframes - 1)]
-        points = self.store.alive(np.unique(np.concatenate([k.points for k in local])))
+        points = self.store.seen_by(local)
         outside: dict[KeyFrame, int] = {}
         local_set = set(local)
         for j in points:

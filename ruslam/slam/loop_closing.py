@@ -220,7 +220,7 @@ class LoopCloser:
             return None
         S12, _ = out
         loop_kfs = [cand, *_map_of(cand).neighbours(cand, 10)]
-        loop_points = s.alive(np.unique(np.concatenate([k.points for k in loop_kfs])))
+        loop_points = s.seen_by(loop_kfs)
         X = s.position[loop_points]
         Xc = transform(S12 @ cand.T_cw, X)
         z = Xc[:, 2]

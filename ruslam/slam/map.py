@@ -160,9 +160,6 @@ class PointStore:
         self.normal_key: list = []  # what the cached normal / descriptor were computed from
         self.descriptor_key: list = []
 
-    def __len__(self) -> int:
-        return self.size
-
     def add(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame) -> int:
         j = self.size
         if self.descriptor is None:
@@ -196,6 +193,10 @@ class PointStore:
         """The ids that name a live point (not -1, not culled or fused away), in their order."""
         ids = ids[ids >= 0]
         return ids[~self.bad[ids]]
+
+    def seen_by(self, frames) -> np.ndarray:
+        """The live points any of `frames` holds, each once, in id order (local map, BA, fusion and loop sets)."""
+        return self.alive(np.unique(np.concatenate([f.points for f in frames])))
 
     def matched(self, frame: Frame) -> np.ndarray:
         """Keypoint indices of `frame` with a live point."""

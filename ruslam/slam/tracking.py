@@ -319,7 +319,7 @@ class Tracker:
     def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
         """Last fallback: the local map's points matched by descriptor, no window, pose by PnP RANSAC."""
         local = [self.reference, *self.map.neighbours(self.reference, self.cfg.local_keyframes)]
-        points = self.store.alive(np.unique(np.concatenate([kf.points for kf in local])))
+        points = self.store.seen_by(local)
         if len(points) < 15:
             return False
         ia, ib = match_knn_ratio(self.store.descriptor[points], frame.descriptors, self.binary, self.max_distance,
@@ -395,8 +395,8 @@ class Tracker:
                 if n not in counts and len(local) < 2 * self.cfg.local_keyframes:
                     counts[n] = 0
                     local.append(n)
-        seen = np.unique(np.concatenate([kf.points for kf in local]))  # up to 40 keyframes' slots
-        candidates = self.store.alive(seen[~np.isin(seen, frame.points)])
+        seen = self.store.seen_by(local)  # up to 40 keyframes' points
+        candidates = seen[~np.isin(seen, frame.points)]
         self._search_points(frame, candidates, self.cfg.local_map_radius, count_visible=True)
         inliers = self._optimize(frame)
         log.debug("Frame %d: local map, %d inliers of %d matches.", frame.index, inliers,
