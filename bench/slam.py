@@ -18,6 +18,10 @@ Memory: the resident set size is sampled every 0.5 s during each SLAM run; the b
 growth over the second half of the frames (MB per 1,000 frames) next to the map's final size, so a leak (growth
 beyond what the map's points and keyframes hold) shows on a long run.
 
+CPU: the process's CPU time (every thread, and the threaded mode's solver child) per frame is printed for the
+extraction alone and for the SLAM run, with the frames/s that this many CPU-seconds allow on the machine's cores
+if they were perfectly shared (`bound`): a goal above the bound cannot be met by scheduling alone, only by less work.
+
 `--profile` runs the SLAM under cProfile and prints the time per stage (ms per frame, share of the run): each
 stage is the cumulative time of the functions that implement it, so nested stages (local BA inside keyframe
 insertion) are listed under their own name and "tracking" excludes the inline mapping it triggers.
@@ -31,6 +35,7 @@ import itertools
 import logging
 import os
 import pstats
+import resource
 import threading
 import time
 from pathlib import Path
@@ -124,6 +129,17 @@ def memory_line(samples: np.ndarray, timings: np.ndarray) -> str:
     return f"peak RSS {samples[:, 1].max():.0f} MB, growth over the second half {1e3 * slope:.1f} MB / 1000 frames"
 
 
+def cpu_seconds() -> float:
+    """CPU time (user + system) of this process's threads and its finished children."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def cpu_line(label: str, cpu: float, frames: int) -> str:
+    cores = os.cpu_count() or 1
+    return f"{label} CPU {1e3 * cpu / frames:.0f} ms/frame (bound on {cores} cores: {cores * frames / cpu:.1f} fps)"
+
+
 def load_sequence(args):
     """The embedded sequence, or `split:variant` of the robustness matrix (conf/dataset/robustness.yaml)."""
     if args.variant is None:
@@ -175,11 +191,12 @@ def main() -> None:
         extractor = load_extractor(name, **({} if args.max_keypoints is None else
                                             {"max_keypoints": args.max_keypoints}))
         extractor.extract(images[0][0])  # warm-up
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), cpu_seconds()
         for frame in images:
             for image in frame:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
+        extract_cpu = cpu_seconds() - cpu
         for mode, solver in itertools.product(args.modes, args.ba_solvers):
             # cProfile sees the main thread only: --profile makes each frame there (no prefetch thread)
             cfg = SLAMConfig(progress=False, synchronous=mode == "sync", solver_process=mode == "threaded",
@@ -192,9 +209,10 @@ def main() -> None:
                 profiler.enable()
             sampler = MemorySampler()
             sampler.start()
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), cpu_seconds()
             result = run(seq, extractor, cfg)
             wall = time.perf_counter() - start
+            slam_cpu = cpu_seconds() - cpu
             memory = sampler.stop()
             if profiler:
                 profiler.disable()
@@ -213,6 +231,7 @@ def main() -> None:
                   f"{1e3 * per_frame[int(0.9 * (n - 1))]:.0f}, max {1e3 * per_frame[-1]:.0f}")
             print(f"{'':16s} {memory_line(memory, result.timings)}; final map {result.num_keyframes} keyframes, "
                   f"{result.num_points} points")
+            print(f"{'':16s} {cpu_line('extraction', extract_cpu, n)}; {cpu_line('SLAM', slam_cpu, n)}")
             if profiler:
                 print(stage_table(pstats.Stats(profiler), n, wall))
 

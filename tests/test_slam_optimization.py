@@ -232,6 +232,41 @@ def test_solver_process_solves_in_a_child_as_in_process():
         solver.close()
 
 
+def test_solver_process_survives_interrupts_at_any_moment():
+    """The tracker interrupts whenever it wants a keyframe, so a stop request can land while the child reads a
+    problem, solves it or writes the answer. Every call must still come back (a SIGUSR1-based interrupt hung the
+    threaded SLAM, and hung or killed the child here within ~200 calls)."""
+    import threading
+
+    from ruslam.slam.solver_process import SolverProcess
+
+    _, noisy, _, Xn, oi, oj, ouv, _ = _ba_problem(stereo=False)
+    fixed = np.array([True, True, False, False, False])
+    solver, done, answers = SolverProcess(), threading.Event(), []
+
+    def hammer():
+        while not done.is_set():
+            solver.interrupt()
+
+    def solve():
+        for _ in range(400):
+            answers.append(solver(noisy, fixed, Xn, oi, oj, ouv, K, solver="schur"))
+
+    threads = [threading.Thread(target=hammer, daemon=True), threading.Thread(target=solve, daemon=True)]
+    try:
+        for t in threads:
+            t.start()
+        threads[1].join(timeout=120)
+        assert not threads[1].is_alive() and len(answers) == 400
+        done.set()
+        threads[0].join()
+        full = solver(noisy, fixed, Xn, oi, oj, ouv, K, solver="schur")  # the flag is cleared for each problem
+        assert np.abs(full[1] - Xn).max() > 1e-3
+    finally:
+        done.set()
+        solver.close()
+
+
 @pytest.mark.parametrize("solver", ["gtsam", "schur"])
 def test_bundle_adjustment_stops_between_iterations_when_asked(solver):
     """ORB-SLAM's interrupted local BA: a stop request is honoured before the next LM iteration."""
