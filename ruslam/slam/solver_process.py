@@ -31,8 +31,8 @@ class SolverProcess:
         self.stop_file = tempfile.TemporaryFile()
         self.stop_file.write(b"\0")
         self.stop_file.flush()
-        self.stop = mmap.mmap(self.stop_file.fileno(), 1)  # byte 0: 1 = return after the current LM iteration
         fd = self.stop_file.fileno()
+        self.stop = mmap.mmap(fd, 1)  # byte 0: 1 = return after the current LM iteration
         command = [sys.executable, "-c", "from ruslam.slam.solver_process import main; main()", str(fd),
                    str(blas_threads or 0)]
         self.process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=(fd,))
