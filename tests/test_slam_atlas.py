@@ -60,7 +60,7 @@ def _fill(m: Map, kfs, points):
     for j in points.tolist():
         if m.store.observations[j]:
             m.store.reference[j] = next(iter(m.store.observations[j]))
-            m.add_point(j)
+            m.points.add(j)
     for k in kfs:
         m.add_keyframe(k)
     for a, b in zip(kfs[:-1], kfs[1:], strict=True):

@@ -152,7 +152,7 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     for j in np.r_[old_pts, new_pts]:
         if store.observations[j]:
             store.reference[j] = next(iter(store.observations[j]))
-            m.add_point(int(j))
+            m.points.add(int(j))
     chain = old + new
     for k in chain:
         m.add_keyframe(k)

@@ -77,8 +77,8 @@ class Atlas:
                 kf.T_cw = _rigid(T)
                 kf.scale *= s
                 kf.map = target
-            for j in moved.points:
-                self.store.position[j] = transform(S, self.store.position[j][None])[0]
+            ids = moved.sorted_points()
+            self.store.position[ids] = transform(S, self.store.position[ids])
             target.keyframes.extend(moved.keyframes)
             target.points |= moved.points
             target.covisibility.update(moved.covisibility)

@@ -316,10 +316,10 @@ class LocalMapper:
 
     # --- keyframe culling --------------------------------------------------------------------------------------
     def _cull_keyframes(self, kf: KeyFrame) -> None:
+        s = self.store
         for n in self.map.neighbours(kf):
             if n is self.map.keyframes[0] or n is kf or n.loop_edges:
                 continue
-            s = self.store
             pts = s.alive(n.points)
             if self.rig is not None and n.depth is not None:
                 pts = [j for j in pts if np.isfinite(n.depth[s.observations[j][n]])]

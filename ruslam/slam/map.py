@@ -376,9 +376,6 @@ class Map:
         self.points.add(j)
         return j
 
-    def add_point(self, j: int) -> None:
-        self.points.add(j)
-
     def remove_point(self, j: int) -> None:
         self.store.bad[j] = True
         for kf, i in self.store.observations[j].items():

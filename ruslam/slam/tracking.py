@@ -24,7 +24,7 @@ import numpy as np
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
-from ruslam.slam.map import Frame, KeyFrame, Map, inverse_pose, scale_translation, transform, update_normals
+from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
 log = logging.getLogger(__name__)
@@ -99,7 +99,7 @@ class Tracker:
         return self.atlas.active
 
     @property
-    def store(self):
+    def store(self) -> PointStore:
         return self.atlas.store
 
     # --- entry point -------------------------------------------------------------------------------------------
