@@ -3,7 +3,13 @@ import pytest
 import torch
 
 from ruslam import load_extractor
-from ruslam.models.extractor import cell_logits_to_heatmap, detect_keypoints, sample_dense, simple_nms
+from ruslam.models.extractor import (
+    cell_logits_to_heatmap,
+    detect_keypoints,
+    refine_subpixel,
+    sample_dense,
+    simple_nms,
+)
 
 
 def test_sampling_convention_hits_cell_centres():
@@ -72,3 +78,15 @@ def test_separable_nms_equals_the_square_window_max():
         square = torch.nn.functional.max_pool2d(scores[:, None], 2 * radius + 1, stride=1, padding=radius)[:, 0]
         expected = torch.where(scores == square, scores, torch.zeros_like(scores))
         assert torch.equal(simple_nms(scores, radius), expected)
+
+
+def test_subpixel_refinement_finds_the_centre_of_a_blob_between_pixels():
+    ys, xs = torch.meshgrid(torch.arange(32.0), torch.arange(40.0), indexing="ij")
+    centres = torch.tensor([[10.3, 7.6], [25.7, 20.2]])  # (x, y)
+    heat = sum(torch.exp(-((xs - x) ** 2 + (ys - y) ** 2) / 2.0) for x, y in centres)
+    (xy, _), = detect_keypoints(heat[None].clone(), 2, 0.1, 0, 0)
+    xy = xy[xy[:, 0].argsort()]
+    assert torch.equal(xy, centres.round())  # the detector alone is off by up to half a pixel
+    refined = refine_subpixel(heat, xy, 3, 0.0)
+    assert torch.allclose(refined, centres, atol=0.05)
+    assert torch.equal(refine_subpixel(heat, xy[:0], 3, 0.0), xy[:0])

@@ -51,8 +51,9 @@ def test_extract_contract_and_resize_mapping(weights):
     # Grey float input works; an image twice the size, resized back by resize_max, gives keypoints twice as far.
     assert ext.extract(img.mean(axis=2).astype(np.float32) / 255)["descriptors"].shape[1] == 64
     big = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)
-    small = UWNetExtractor.from_file(path, max_keypoints=0, detection_threshold=0.002, resize_max=None).extract(img)
-    big_kp = UWNetExtractor.from_file(path, max_keypoints=0, detection_threshold=0.002, resize_max=128).extract(big)
+    opts = {"max_keypoints": 0, "detection_threshold": 0.002, "subpixel_radius": 0}  # integer pixels: exact
+    small = UWNetExtractor.from_file(path, resize_max=None, **opts).extract(img)
+    big_kp = UWNetExtractor.from_file(path, resize_max=128, **opts).extract(big)
     expected = (small["keypoints"] + 0.5) * 2 - 0.5
     assert len(expected) > 5
     np.testing.assert_allclose(np.unique(big_kp["keypoints"], axis=0), np.unique(expected, axis=0), atol=1e-4)
