@@ -36,6 +36,11 @@ def test_fast_dev_run_through_composed_config(tmp_path, cache_root):
     assert load_extractor(tmp_path / "uwnet.pt").extract(torch.rand(64, 96).numpy())["descriptors"].shape[1] == 64
 
 
+def test_repeatability_term_is_trained_and_reported(tmp_path, cache_root, capsys):
+    train(_cfg(tmp_path, cache_root, ["+trainer.fast_dev_run=true", "+model.repeatability_weight=1.0"]))
+    assert "repeatability (1 - correlation)" in capsys.readouterr().out
+
+
 def test_init_weights_starts_from_trained_weights_and_refuses_another_architecture(tmp_path, cache_root, capsys):
     cfg = _cfg(tmp_path, cache_root)
     torch.manual_seed(1)
