@@ -87,6 +87,6 @@ def test_subpixel_refinement_finds_the_centre_of_a_blob_between_pixels():
     (xy, _), = detect_keypoints(heat[None].clone(), 2, 0.1, 0, 0)
     xy = xy[xy[:, 0].argsort()]
     assert torch.equal(xy, centres.round())  # the detector alone is off by up to half a pixel
-    refined = refine_subpixel(heat, xy, 3, 0.0)
+    refined = refine_subpixel(heat, xy, 3)
     assert torch.allclose(refined, centres, atol=0.05)
-    assert torch.equal(refine_subpixel(heat, xy[:0], 3, 0.0), xy[:0])
+    assert torch.equal(refine_subpixel(heat, xy[:0], 3), xy[:0])

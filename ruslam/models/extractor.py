@@ -155,8 +155,8 @@ def decode_sparse(
     cell logits [1, stride^2+1, h, w] and dense descriptors [1, D, h, w] -> keypoints [N, 2] (x, y) in the
     (h*stride, w*stride) input cropped to `size`, scores [N], unit descriptors [N, D].
 
-    `conf` gives nms_radius, detection_threshold, border and max_keypoints, and optionally subpixel_radius and
-    subpixel_temperature (`refine_subpixel`; absent = integer pixels, as the teachers publish them). With
+    `conf` gives nms_radius, detection_threshold, border and max_keypoints, and optionally subpixel_radius
+    (`refine_subpixel`; absent or 0 = integer pixels, as the teachers publish them). With
     `reliability` [1, 1, h, w] (XFeat), the top-k is taken after weighting each heatmap score by the reliability
     at the keypoint.
     """
@@ -170,23 +170,23 @@ def decode_sparse(
         xy, scores = xy[order], scores[order]
     r = int(conf.get("subpixel_radius") or 0)
     if r > 0:
-        xy = refine_subpixel(heat[0], xy, r, float(conf.get("subpixel_temperature") or 0))
+        xy = refine_subpixel(heat[0], xy, r)
     return xy, scores, sample_descriptors(dense_descriptors, xy[None], stride)[0]
 
 
-def refine_subpixel(heat: torch.Tensor, xy: torch.Tensor, radius: int, temperature: float) -> torch.Tensor:
-    """Keypoints moved to the weighted centre of the heatmap [H, W] in their (2r+1)^2 window (weights: the heat,
-    or its softmax at `temperature` > 0). A cell detector puts its keypoint on one pixel of a peak that spans
-    several; the centre is what repeats from view to view (ALIKED's soft-argmax detector does the same)."""
+def refine_subpixel(heat: torch.Tensor, xy: torch.Tensor, radius: int) -> torch.Tensor:
+    """Keypoints moved to the heat-weighted centre of their (2r+1)^2 window of the heatmap [H, W]. A cell detector
+    puts its keypoint on one pixel of a peak that spans several; the centre is what repeats from view to view
+    (ALIKED's soft-argmax detector does the same)."""
     if len(xy) == 0:
         return xy
     k = 2 * radius + 1
     padded = F.pad(heat[None, None], (radius,) * 4)[0, 0]
-    d = torch.arange(-radius, radius + 1)
+    d = torch.arange(-radius, radius + 1, device=heat.device)
     x, y = xy[:, 0].long(), xy[:, 1].long()
     patch = padded[(y[:, None, None] + radius + d[None, :, None]), (x[:, None, None] + radius + d[None, None, :])]
     patch = patch.reshape(len(xy), k * k)
-    w = (patch / temperature).softmax(1) if temperature > 0 else patch / patch.sum(1, keepdim=True).clamp_min(1e-12)
+    w = patch / patch.sum(1, keepdim=True).clamp_min(1e-12)
     dy, dx = torch.meshgrid(d, d, indexing="ij")
     off = torch.stack([(w * dx.reshape(1, -1)).sum(1), (w * dy.reshape(1, -1)).sum(1)], 1)
     return xy + off.to(xy.dtype)

@@ -1,4 +1,4 @@
-"""Repeatability loss: the student's keypoint heat of two warped views of one image made to agree (R2D2's cosim).
+"""Repeatability loss: the student's keypoint heat of two warped views of one image made to agree (after R2D2).
 
 The detector is distilled view by view from the teacher's map; where the student cannot copy it (its cell head
 stays far from ALIKED's map, README), its misses differ from view to view, and a keypoint that moves between

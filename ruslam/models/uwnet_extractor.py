@@ -33,8 +33,7 @@ class UWNetExtractor(Extractor):
         "detection_threshold": 0.005,
         "border": 4,
         "resize_max": 640,  # longer side; None keeps the input size
-        "subpixel_radius": 4,  # keypoints at the heat's centre in their 9x9 window (EUVP MMA@3 34.3 -> 36.5, README)
-        "subpixel_temperature": 0.0,  # 0: weights = the heat itself; > 0: its softmax at this temperature
+        "subpixel_radius": 4,  # keypoints at the heat's centre in their 9x9 window (0: integer pixels; README)
         "device": "cpu",
     }
     uses_device = True

