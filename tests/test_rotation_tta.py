@@ -6,7 +6,7 @@ from ruslam.data.procedural import ProceduralRGBD
 from ruslam.eval.matching import evaluate_pair
 from ruslam.models.extractor import Extractor
 from ruslam.models.registry import load_extractor
-from ruslam.models.rotation_tta import C4Augmented, extract_rotations, pool, rotated_to_original
+from ruslam.models.rotation_tta import C4Augmented, best_rotation, extract_rotations, pool, rotated_to_original
 
 
 class BrightestPixel(Extractor):
@@ -64,3 +64,15 @@ def test_c4_reference_matches_a_rotated_query_the_plain_reference_does_not(scene
 def test_c4_keeps_binary_descriptors(scene):
     out = C4Augmented(load_extractor("orb", max_keypoints=200)).extract(cv2.cvtColor(scene, cv2.COLOR_RGB2GRAY))
     assert out["descriptors"].dtype == np.uint8 and len(out["keypoints"]) == len(out["descriptors"]) > 200
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_the_best_rotation_is_the_copy_the_query_was_turned_by(scene, k):
+    xfeat = load_extractor("xfeat", max_keypoints=400, vlad_codebook=None)
+    parts = extract_rotations(xfeat, scene)
+    query = xfeat.extract(np.ascontiguousarray(np.rot90(scene, k)))
+    assert best_rotation(parts, query) == k
+    # binary descriptors: an upright query agrees best with the upright copy (its own keypoints, Hamming 0)
+    orb = load_extractor("orb", max_keypoints=300)
+    grey = cv2.cvtColor(scene, cv2.COLOR_RGB2GRAY)
+    assert best_rotation(extract_rotations(orb, grey), orb.extract(grey), binary=True) == 0

@@ -29,9 +29,10 @@ from ruslam.errors import MissingWeights
 from ruslam.eval.match_plots import draw_matches, plot_mma, write_png
 from ruslam.eval.matching import PairResult, cap_keypoints, evaluate_pair, rotation_bin, summarize
 from ruslam.models.registry import EXTRACTORS, load_extractor
-from ruslam.models.rotation_tta import ROTATIONS, extract_rotations, pool
+from ruslam.models.rotation_tta import ROTATIONS, best_rotation, extract_rotations, pool
 
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
+ROTATION_MODES = {"none": "", "c4": " + C4 TTA", "c4best": " + C4 best rotation"}  # mode -> row label suffix
 
 
 def resolve_extractors(names, task: DictConfig, extra_options=None) -> tuple[dict, dict]:
@@ -68,11 +69,11 @@ def resolve_extractors(names, task: DictConfig, extra_options=None) -> tuple[dic
 
 
 def rotation_modes(task: DictConfig) -> list[str]:
-    """``task.rotation_tta``: none, c4, or a list of both (one table row per extractor and mode)."""
+    """``task.rotation_tta``: none, c4, c4best, or a list of them (one table row per extractor and mode)."""
     value = task.get("rotation_tta") or "none"
     modes = [value] if isinstance(value, str) else list(value)
-    if not modes or any(m not in ("none", "c4") for m in modes) or len(set(modes)) != len(modes):
-        raise ValueError(f"task.rotation_tta must be none, c4 or a list of both, got {value!r}.")
+    if not modes or any(m not in ROTATION_MODES for m in modes) or len(set(modes)) != len(modes):
+        raise ValueError(f"task.rotation_tta must be one of {list(ROTATION_MODES)} or a list of them, got {value!r}.")
     return modes
 
 
@@ -81,10 +82,10 @@ def mode_key(name: str, mode: str) -> str:
 
 
 def row_labels(task: DictConfig, names) -> dict:
-    """Table labels of every extractor and rotation mode (``task.labels``, '+ C4 TTA' for the augmented rows)."""
+    """Table labels of every extractor and rotation mode (``task.labels``, '+ C4 TTA' etc. for the augmented rows)."""
     labels = dict(task.get("labels") or {})
-    labels.update({mode_key(n, m): f"{labels.get(n, n)} + C4 TTA" for n in names for m in rotation_modes(task)
-                   if m != "none"})
+    labels.update({mode_key(n, m): f"{labels.get(n, n)}{ROTATION_MODES[m]}" for n in names
+                   for m in rotation_modes(task) if m != "none"})
     return labels
 
 
@@ -98,7 +99,8 @@ def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path,
     Returns ({key: [PairResult]}, [(rotation, zoom) of each pair], {key: [seconds per image 2]}, [pictures]),
     one key per extractor and rotation mode (`mode_key`); the first pair met in each rotation bin (at most
     ``task.num_pictures`` pairs) gets a match picture per key. With C4 test-time augmentation, image 1 (shared by
-    the pairs of a sequence) is also extracted at 90/180/270°, each rotation capped to ``task.max_keypoints``.
+    the pairs of a sequence) is also extracted at 90/180/270°, each rotation capped to ``task.max_keypoints``;
+    ``c4`` matches image 2 against the four pooled, ``c4best`` against the one `best_rotation` picks.
     """
     modes = rotation_modes(task)
     keys = [(name, mode, mode_key(name, mode)) for name in extractors for mode in modes]
@@ -114,17 +116,22 @@ def evaluate_dataset(dataset, extractors: dict, task: DictConfig, out_dir: Path,
         picture = len(pictured_bins) < task.num_pictures and b not in pictured_bins
         for name, extractor in extractors.items():
             if reference.get(name, (None,))[0] != pair["sequence"]:
-                parts = extract_rotations(extractor, pair["image1"], ROTATIONS if "c4" in modes else (0,))
+                rotated = any(m != "none" for m in modes)
+                parts = extract_rotations(extractor, pair["image1"], ROTATIONS if rotated else (0,))
                 parts = [cap_keypoints(p, task.max_keypoints) for p in parts]
-                reference[name] = (pair["sequence"], {"none": parts[0], "c4": pool(parts)})
+                reference[name] = (pair["sequence"], {"none": parts[0], "c4": pool(parts), "parts": parts})
             start = time.perf_counter()
             features2 = extractor.extract(pair["image2"])
             seconds = time.perf_counter() - start
             for mode in modes:
                 key = mode_key(name, mode)
                 timings[key].append(seconds)
-                results[key].append(_evaluate(reference[name][1][mode], features2, pair, extractor, task, key,
-                                              out_dir, picture, pictures))
+                features1 = reference[name][1].get(mode)
+                if mode == "c4best":
+                    parts = reference[name][1]["parts"]
+                    features1 = parts[best_rotation(parts, features2, getattr(extractor, "binary", False))]
+                results[key].append(_evaluate(features1, features2, pair, extractor, task, key, out_dir, picture,
+                                              pictures))
         if picture:
             pictured_bins.add(b)
     return results, rotations, timings, pictures

@@ -6,6 +6,10 @@ it. Keypoints found in ``np.rot90(image, k)`` are mapped back to the input's pix
 integers); descriptors and scores are kept as they are. The query image is extracted once, as usual, so the
 per-frame cost is unchanged and the reference costs 4 extractions.
 
+Two ways to match a query against the four copies: pool them (`pool`, `C4Augmented`: mutual nearest neighbours
+over up to 4x the keypoints, so the three wrong copies add distractors), or first pick the copy the query agrees
+with (`best_rotation`: the most ratio-test mutual matches, no geometry) and match against it alone.
+
 Works with any extractor of the contract (float or binary descriptors); ``global_descriptor`` comes from the
 upright image.
 """
@@ -15,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ruslam.models.extractor import Extractor, check_image
+from ruslam.slam.feature_matching import match_knn_ratio
 
 ROTATIONS = (0, 1, 2, 3)  # multiples of 90° counter-clockwise, as np.rot90
 
@@ -52,6 +57,14 @@ def pool(parts: list[dict]) -> dict:
     if "global_descriptor" in parts[0]:
         out["global_descriptor"] = parts[0]["global_descriptor"]
     return out
+
+
+def best_rotation(parts: list[dict], query: dict, binary: bool = False, ratio: float = 0.9) -> int:
+    """Index of the part (one reference rotation) with the most mutual nearest-neighbour matches to ``query``
+    that pass a 2-NN ratio test: the copy nearest to the query's rotation, chosen from descriptors alone."""
+    counts = [len(match_knn_ratio(np.asarray(p["descriptors"]), np.asarray(query["descriptors"]), binary,
+                                  max_distance=np.inf, ratio=ratio)[0]) for p in parts]
+    return int(np.argmax(counts))
 
 
 class C4Augmented(Extractor):
