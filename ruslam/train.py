@@ -20,7 +20,7 @@ from ruslam.models.export import export_weights, load_uwnet
 REPORTED = (("val/detector", "detector (L3, soft CE)"), ("val/local", "local descriptors (L2)"),
             ("val/global", "global descriptor (L1)"), ("val/correspondence", "correspondence (InfoNCE)"),
             ("val/reliability", "reliability (BCE)"), ("val/repeatability", "repeatability (1 - correlation)"),
-            ("val/localisation", "localisation (px)"), ("val/loss", "total"))
+            ("val/loss", "total"))
 
 
 def _instantiate_all(group: DictConfig | None) -> list:

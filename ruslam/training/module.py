@@ -10,7 +10,6 @@ import torch
 from ruslam.errors import InputError
 from ruslam.models.correspondence_loss import CorrespondenceLoss
 from ruslam.models.distillation_loss import DistillationLoss
-from ruslam.models.localisation_loss import LocalisationLoss
 from ruslam.models.reliability_loss import ReliabilityLoss
 from ruslam.models.repeatability_loss import RepeatabilityLoss
 
@@ -29,8 +28,7 @@ class DistillationModule(pl.LightningModule):
                  channels_last: bool = True, correspondence: CorrespondenceLoss | None = None,
                  correspondence_weight: float = 1.0, reliability: ReliabilityLoss | None = None,
                  reliability_weight: float = 0.0, trainable: list[str] | None = None,
-                 repeatability: RepeatabilityLoss | None = None, repeatability_weight: float = 0.0,
-                 localisation: LocalisationLoss | None = None, localisation_weight: float = 0.0):
+                 repeatability: RepeatabilityLoss | None = None, repeatability_weight: float = 0.0):
         super().__init__()
         self.net = net  # UWNet or XFeatStudent: same outputs, a ``config`` dict for export
         self.loss = loss if loss is not None else DistillationLoss()
@@ -43,9 +41,6 @@ class DistillationModule(pl.LightningModule):
         # The two views' keypoint heat made to agree under the homography (needs pair views and a weight > 0).
         self.repeatability = repeatability if repeatability is not None else RepeatabilityLoss()
         self.repeatability_weight = repeatability_weight
-        # Each view's refined keypoints found again, to the pixel, in the other (pair views and a weight > 0).
-        self.localisation = localisation if localisation is not None else LocalisationLoss()
-        self.localisation_weight = localisation_weight
         self.optimizer_factory = optimizer
         # Parameter-name prefixes of the net to train (e.g. ["xfeat.heatmap_head."]); the rest of the net and the
         # loss weights are frozen, so no gradient flows through them. None trains everything.
@@ -81,15 +76,11 @@ class DistillationModule(pl.LightningModule):
                 rel = self.reliability(pred["reliability"].chunk(2)[0], samples)
                 out["reliability"] = rel
                 out["total"] = out["total"] + self.reliability_weight * rel
-        logits_a, logits_b = pred["keypoint_logits"].chunk(2)
         if self.repeatability_weight > 0:
+            logits_a, logits_b = pred["keypoint_logits"].chunk(2)
             rep = self.repeatability(logits_a, logits_b, batch["homography_ab"], batch["mask"])
             out["repeatability"] = rep
             out["total"] = out["total"] + self.repeatability_weight * rep
-        if self.localisation_weight > 0:
-            loc = self.localisation(logits_a, logits_b, batch["homography_ab"], batch["mask"], pair["mask"])
-            out["localisation"] = loc
-            out["total"] = out["total"] + self.localisation_weight * loc
         return out
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -128,7 +119,7 @@ class DistillationModule(pl.LightningModule):
         bs = batch["image"].shape[0]
         self.log("train/loss", out["total"], prog_bar=True, batch_size=bs)
         for key in ("global", "local", "detector", "alpha", "beta", "gamma", "correspondence", "reliability",
-                    "repeatability", "localisation"):
+                    "repeatability"):
             if key in out:
                 self.log(f"train/{key}", out[key], batch_size=bs)
         return out["total"]
@@ -136,8 +127,7 @@ class DistillationModule(pl.LightningModule):
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         out = self._losses(batch)
         bs = batch["image"].shape[0]
-        for key in ("global", "local", "detector", "correspondence", "reliability", "repeatability",
-                    "localisation"):
+        for key in ("global", "local", "detector", "correspondence", "reliability", "repeatability"):
             if key in out:
                 self.log(f"val/{key}", out[key], batch_size=bs, sync_dist=True)
         self.log("val/loss", out["total"], prog_bar=True, batch_size=bs, sync_dist=True)
