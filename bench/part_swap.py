@@ -1,11 +1,12 @@
 """Which part separates UWNet/XFeat from ALIKED: one extractor's keypoints with the other's descriptors.
 
     .venv/bin/python bench/part_swap.py task=matching \
-        'extractors=[xfeat,aliked,aliked_kp_xfeat_desc,xfeat_kp_aliked_desc,uwnet_xfeat]'
+        'extractors=[xfeat,aliked,aliked_kp_xfeat_desc,xfeat_kp_aliked_desc,uwnet_xfeat,aliked_kp_uwnet_desc]'
 
 Any `evaluate.py task=matching` override works (dataset, rotation_tta...). `aliked_kp_xfeat_desc`: ALIKED-n16rot's
 keypoints with XFeat's dense descriptors sampled at them (the project's convention); `xfeat_kp_aliked_desc`: XFeat's
-keypoints with ALIKED's SDDH descriptors computed at them. Result (session 15, BENCHMARKS.md "Which part is the
+keypoints with ALIKED's SDDH descriptors computed at them; `aliked_kp_uwnet_desc`: ALIKED's keypoints with the shipped
+UWNet's dense descriptors sampled at them. Result (session 15, BENCHMARKS.md "Which part is the
 gap"): the keypoints carry the difference.
 """
 
@@ -23,6 +24,7 @@ from ruslam.models import registry
 from ruslam.models.extractor import Extractor, sample_descriptors, to_float_rgb
 from ruslam.models.peers import ALIKED
 from ruslam.models.teachers.xfeat import STRIDE, XFeat, pad_to_multiple
+from ruslam.models.uwnet_extractor import UWNetExtractor
 
 
 class _Swap(Extractor):
@@ -57,8 +59,30 @@ class XFeatKeypointsALIKEDDescriptors(_Swap):
         return out
 
 
+class ALIKEDKeypointsUWNetDescriptors(Extractor):
+    default_conf = {"device": "cpu"}
+    uses_device = True
+
+    def __init__(self, **conf):
+        super().__init__(**conf)
+        self.aliked, self.uwnet = ALIKED(), UWNetExtractor()
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        out = self.aliked.extract(image)
+        x = torch.from_numpy(np.ascontiguousarray(to_float_rgb(image))).permute(2, 0, 1)[None]
+        h, w = x.shape[-2:]
+        nh, nw = self.uwnet._input_size(h, w)
+        x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
+        dense = self.uwnet.net(x.clamp(0, 1))["dense_descriptors"]
+        xy = (torch.from_numpy(out["keypoints"]) + 0.5) * torch.tensor([nw / w, nh / h]) - 0.5  # UWNet's pixels
+        out["descriptors"] = sample_descriptors(dense, xy[None], STRIDE)[0].numpy()
+        return out
+
+
 registry.register("aliked_kp_xfeat_desc", f"{__name__}:ALIKEDKeypointsXFeatDescriptors")
 registry.register("xfeat_kp_aliked_desc", f"{__name__}:XFeatKeypointsALIKEDDescriptors")
+registry.register("aliked_kp_uwnet_desc", f"{__name__}:ALIKEDKeypointsUWNetDescriptors")
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")

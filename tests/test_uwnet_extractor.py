@@ -121,3 +121,28 @@ def test_shipped_checkpoint_loads_by_name_and_is_small_fp16():
     assert all(v.dtype == torch.float16 for v in raw["state_dict"].values() if v.is_floating_point())
     out = load_extractor("uwnet_xfeat").extract(np.zeros((120, 160, 3), np.uint8) + 128)
     assert out["global_descriptor"].shape == (4096,) and out["descriptors"].shape[1] == 64
+
+
+def test_resize_min_equals_upsampling_by_hand(weights):
+    """resize_min runs the network on the upsampled image and maps keypoints back to input pixels: the same
+    keypoints and descriptors as upsampling by hand (bilinear, half-pixel centres), x = (x' + 0.5) / 2 - 0.5."""
+    path, _ = weights
+    rgb = np.random.default_rng(1).random((96, 128, 3)).astype(np.float32)
+    up = torch.nn.functional.interpolate(torch.from_numpy(rgb).permute(2, 0, 1)[None], size=(192, 256),
+                                         mode="bilinear", align_corners=False)[0].permute(1, 2, 0).numpy()
+    opts = {"max_keypoints": 0, "detection_threshold": 0.002, "subpixel_radius": 0}
+    small = UWNetExtractor.from_file(path, resize_min=256, resize_max=None, **opts).extract(rgb)
+    by_hand = UWNetExtractor.from_file(path, resize_max=None, **opts).extract(np.ascontiguousarray(up))
+    native = UWNetExtractor.from_file(path, resize_max=None, **opts).extract(rgb)
+    assert len(small["keypoints"]) == len(by_hand["keypoints"]) > len(native["keypoints"]) > 5  # finer cells
+    a, b = np.lexsort(small["keypoints"].T), np.lexsort(by_hand["keypoints"].T)  # equal scores: any order
+    np.testing.assert_allclose(small["keypoints"][a], (by_hand["keypoints"][b] + 0.5) / 2 - 0.5, atol=1e-4)
+    np.testing.assert_allclose(small["descriptors"][a], by_hand["descriptors"][b], atol=1e-4)
+    assert small["keypoints"].max(0).tolist() < [128, 96] and small["keypoints"].min() > -0.5
+
+
+@pytest.mark.parametrize("key", ["resize_min", "resize_max"])
+@pytest.mark.parametrize("size", [0, -640, "640", 10**6])
+def test_resize_options_reject_what_is_not_a_size(weights, key, size):
+    with pytest.raises(ValueError, match=key):
+        UWNetExtractor.from_file(weights[0], **{key: size})

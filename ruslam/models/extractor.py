@@ -110,10 +110,17 @@ def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     """Keep only local maxima within a (2r+1)^2 window: scores [B, H, W] -> same with non-maxima zeroed."""
     if radius <= 0:
         return scores
-    # max over a square window is separable: a row pass then a column pass (same result, ~2x cheaper at 9x9)
-    k = 2 * radius + 1
-    rows = F.max_pool2d(scores[:, None], kernel_size=(1, k), stride=1, padding=(0, radius))
-    pooled = F.max_pool2d(rows, kernel_size=(k, 1), stride=1, padding=(radius, 0))[:, 0]
+    # max over a square window is separable: a row pass then a column pass, each as 2r element-wise maxima of
+    # shifted views (same result as max_pool2d, several times cheaper on CPU; BENCHMARKS.md "Working size")
+    h, w = scores.shape[-2:]
+    padded = F.pad(scores, (radius, radius), value=float("-inf"))
+    rows = padded[..., :w]
+    for i in range(1, 2 * radius + 1):
+        rows = torch.maximum(rows, padded[..., i:i + w])
+    padded = F.pad(rows, (0, 0, radius, radius), value=float("-inf"))
+    pooled = padded[..., :h, :]
+    for i in range(1, 2 * radius + 1):
+        pooled = torch.maximum(pooled, padded[..., i:i + h, :])
     return torch.where(scores == pooled, scores, torch.zeros_like(scores))
 
 

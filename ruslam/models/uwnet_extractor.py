@@ -1,7 +1,8 @@
 """`UWNetExtractor`: a trained UWNet behind the project's extractor contract (`load_extractor("uwnet_xfeat")`).
 
-The image is resized so its longer side is at most ``resize_max`` and both sides are multiples of 8 (the cell
-layout); keypoints are mapped back to input pixels with the pixel-centre convention x = (x' + 0.5) * s - 0.5.
+The image is resized so its longer side is at least ``resize_min`` and at most ``resize_max``, and both sides are
+multiples of 8 (the cell layout); keypoints are mapped back to input pixels with the pixel-centre convention
+x = (x' + 0.5) * s - 0.5.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ruslam.errors import InputError
 from ruslam.models.export import load_uwnet
 from ruslam.models.extractor import (
     Extractor,
@@ -32,7 +34,8 @@ class UWNetExtractor(Extractor):
         "nms_radius": 2,  # XFeat's 5x5 window, as the teacher; a 9x9 max-pool at 480x640 costs ~1/3 of the backbone
         "detection_threshold": 0.005,
         "border": 4,
-        "resize_max": 640,  # longer side; None keeps the input size
+        "resize_min": None,  # longer side below this: upsampled to it (finer 8 px cells; README "Working size")
+        "resize_max": 640,  # longer side above this: downsampled to it; None keeps the input size
         "subpixel_radius": 4,  # keypoints at the heat's centre in their 9x9 window (0: integer pixels; README)
         "device": "cpu",
     }
@@ -41,6 +44,10 @@ class UWNetExtractor(Extractor):
 
     def __init__(self, **conf):
         super().__init__(**conf)
+        for key in ("resize_min", "resize_max"):
+            size = self.conf[key]
+            if size is not None and not (isinstance(size, int | float) and 16 <= size <= 4096):
+                raise InputError(f"UWNet {key} must be null or a longer side in pixels (16-4096), got {size!r}.")
         weights = self.conf["weights"] or self.default_weights
         self.device = torch.device(self.conf["device"])
         self.net = load_uwnet(weights, descriptor_dim=self.conf["descriptor_dim"]).to(self.device)
@@ -54,6 +61,8 @@ class UWNetExtractor(Extractor):
         scale = 1.0
         if self.conf["resize_max"] and max(h, w) > self.conf["resize_max"]:
             scale = self.conf["resize_max"] / max(h, w)
+        elif self.conf["resize_min"] and max(h, w) < self.conf["resize_min"]:
+            scale = self.conf["resize_min"] / max(h, w)
         return max(STRIDE, round(h * scale / STRIDE) * STRIDE), max(STRIDE, round(w * scale / STRIDE) * STRIDE)
 
     @torch.inference_mode()
@@ -63,7 +72,7 @@ class UWNetExtractor(Extractor):
         x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].to(self.device)
         nh, nw = self._input_size(h, w)
         if (nh, nw) != (h, w):
-            x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
+            x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=nh < h)
         out = self.net(x.clamp(0, 1))
         xy, scores, desc = decode_sparse(out["keypoint_logits"], out["dense_descriptors"], (nh, nw), self.conf,
                                          STRIDE, out.get("reliability"))
