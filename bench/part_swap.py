@@ -73,7 +73,7 @@ class ALIKEDKeypointsUWNetDescriptors(Extractor):
         x = torch.from_numpy(np.ascontiguousarray(to_float_rgb(image))).permute(2, 0, 1)[None]
         h, w = x.shape[-2:]
         nh, nw = self.uwnet._input_size(h, w)
-        x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
+        x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=nh < h)  # as UWNet's
         dense = self.uwnet.net(x.clamp(0, 1))["dense_descriptors"]
         xy = (torch.from_numpy(out["keypoints"]) + 0.5) * torch.tensor([nw / w, nh / h]) - 0.5  # UWNet's pixels
         out["descriptors"] = sample_descriptors(dense, xy[None], STRIDE)[0].numpy()
