@@ -70,13 +70,9 @@ class ALIKEDKeypointsUWNetDescriptors(Extractor):
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
         out = self.aliked.extract(image)
-        x = torch.from_numpy(np.ascontiguousarray(to_float_rgb(image))).permute(2, 0, 1)[None]
-        h, w = x.shape[-2:]
-        nh, nw = self.uwnet._input_size(h, w)
-        x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=nh < h)  # as UWNet's
-        dense = self.uwnet.net(x.clamp(0, 1))["dense_descriptors"]
+        net_out, (h, w), (nh, nw) = self.uwnet.run(image)  # at UWNet's working size
         xy = (torch.from_numpy(out["keypoints"]) + 0.5) * torch.tensor([nw / w, nh / h]) - 0.5  # UWNet's pixels
-        out["descriptors"] = sample_descriptors(dense, xy[None], STRIDE)[0].numpy()
+        out["descriptors"] = sample_descriptors(net_out["dense_descriptors"], xy[None], STRIDE)[0].numpy()
         return out
 
 

@@ -67,6 +67,12 @@ def check_image(image) -> np.ndarray:
     return image
 
 
+def check_longer_side(owner: str, key: str, size) -> None:
+    """A resize option (`resize_min` / `resize_max` of the learned extractors) is null or a side in pixels."""
+    if size is not None and not (isinstance(size, int | float) and 16 <= size <= 4096):
+        raise InputError(f"{owner} {key} must be null or a longer side in pixels (16-4096), got {size!r}.")
+
+
 def to_float_rgb(image: np.ndarray) -> np.ndarray:
     """HxWx3 float32 RGB in [0, 1] from any accepted input (grey is replicated)."""
     image = check_image(image)

@@ -13,10 +13,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ruslam.errors import InputError
 from ruslam.models.export import load_uwnet
 from ruslam.models.extractor import (
     Extractor,
+    check_longer_side,
     decode_sparse,
     to_float_rgb,
 )
@@ -48,9 +48,7 @@ class UWNetExtractor(Extractor):
     def __init__(self, **conf):
         super().__init__(**conf)
         for key in ("resize_min", "resize_max"):
-            size = self.conf[key]
-            if size is not None and not (isinstance(size, int | float) and 16 <= size <= 4096):
-                raise InputError(f"UWNet {key} must be null or a longer side in pixels (16-4096), got {size!r}.")
+            check_longer_side("UWNet", key, self.conf[key])
         weights = self.conf["weights"] or self.default_weights
         self.device = torch.device(self.conf["device"])
         self.net = load_uwnet(weights, descriptor_dim=self.conf["descriptor_dim"]).to(self.device)
@@ -69,14 +67,19 @@ class UWNetExtractor(Extractor):
         return max(STRIDE, round(h * scale / STRIDE) * STRIDE), max(STRIDE, round(w * scale / STRIDE) * STRIDE)
 
     @torch.inference_mode()
-    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+    def run(self, image: np.ndarray) -> tuple[dict[str, torch.Tensor], tuple[int, int], tuple[int, int]]:
+        """The network's outputs on the image at the working size, the input (h, w) and the working (h, w)."""
         rgb = to_float_rgb(image)
         h, w = rgb.shape[:2]
         x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].to(self.device)
         nh, nw = self._input_size(h, w)
         if (nh, nw) != (h, w):
             x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=nh < h)
-        out = self.net(x.clamp(0, 1))
+        return self.net(x.clamp(0, 1)), (h, w), (nh, nw)
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        out, (h, w), (nh, nw) = self.run(image)
         xy, scores, desc = decode_sparse(out["keypoint_logits"], out["dense_descriptors"], (nh, nw), self.conf,
                                          STRIDE, out.get("reliability"))
         scale = xy.new_tensor([w / nw, h / nh])

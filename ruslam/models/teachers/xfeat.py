@@ -25,9 +25,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ruslam.errors import InputError
 from ruslam.models.extractor import (
     Extractor,
+    check_longer_side,
     decode_sparse,
     to_float_rgb,
 )
@@ -110,9 +110,7 @@ class XFeat(Extractor):
 
     def __init__(self, **conf):
         super().__init__(**conf)
-        size = self.conf["resize_min"]
-        if size is not None and not (isinstance(size, int | float) and 16 <= size <= 4096):
-            raise InputError(f"XFeat resize_min must be null or a longer side in pixels (16-4096), got {size!r}.")
+        check_longer_side("XFeat", "resize_min", self.conf["resize_min"])
         self.device = torch.device(self.conf["device"])
         self.teacher = XFeatTeacher(self.conf["weights"]).to(self.device)
         self.vlad = None
