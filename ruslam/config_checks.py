@@ -146,6 +146,8 @@ def check_matching(cfg: DictConfig) -> None:
     if float(task.headline_threshold) not in thresholds:
         raise InputError(f"task.headline_threshold={float(task.headline_threshold):g} must be one of "
                          f"task.thresholds {thresholds}.")
+    if int(task.max_keypoints) < 1:  # the cap is taken by score: a negative one would silently drop keypoints
+        raise InputError(f"task.max_keypoints must be >= 1; got {task.max_keypoints}.")
     require_path(cfg, "dataset.root", "folder")
     target = str(cfg.dataset.get("_target_", ""))
     if target.endswith("upatches_from_folder"):  # enough images in the folder (the build itself writes files)
