@@ -1,7 +1,7 @@
 """The matching step of triangulation (one keyframe against one neighbour), three ways in one process on the same
-data: session 6's (epipolar distance matrix, then the masked dense search), session 7's (`epipolar_mask`, normalised
-lines, then the same dense search), and today's `match_knn_ratio` (binary descriptors: only the pairs inside the band
-scored, session 13; float: session 7's). One BLAS thread, as in the SLAM (`slam.blas_threads`).
+data: an epipolar distance matrix, then the masked dense search; `epipolar_mask` (normalised lines), then the same
+dense search; and `match_knn_ratio` as the SLAM runs it (binary descriptors: only the pairs inside the band scored;
+float: the dense search). One BLAS thread, as in the SLAM (`slam.blas_threads`).
 
     nice .venv/bin/python bench/triangulation_matching.py [--keypoints 700 1000 2000] [--reps 20]
 
@@ -23,15 +23,15 @@ from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, pose_mat
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 
 
-def old_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
-    """Session 6: an epipolar distance matrix, then the masked dense search."""
+def distance_matrix_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
+    """An epipolar distance matrix, then the masked dense search."""
     lines = np.c_[x1, np.ones(len(x1))] @ F.T
     dist = np.abs(lines[:, :2] @ x2.T + lines[:, 2:3]) / np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
     return masked_dense_search(descriptor_distances(d1, d2, binary), dist < px, max_distance, ratio)
 
 
 def dense_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
-    """Session 7: every pair scored, then the mask applied (what `match_knn_ratio` still does for float)."""
+    """Every pair scored, then the mask applied (what `match_knn_ratio` does for float)."""
     return masked_dense_search(descriptor_distances(d1, d2, binary), epipolar_mask(F, x1, x2, px), max_distance, ratio)
 
 
@@ -48,7 +48,7 @@ def masked_dense_search(d, mask, max_distance, ratio):
     return i, best[i]
 
 
-def new_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
+def library_match(d1, d2, x1, x2, F, binary, max_distance, ratio=0.8, px=4.0):
     return match_knn_ratio(d1, d2, binary, max_distance, ratio, mask=epipolar_mask(F, x1, x2, px))
 
 
@@ -78,9 +78,10 @@ def main() -> None:
     args = ap.parse_args()
     threadpool_limits(1, user_api="blas")
     rng = np.random.default_rng(0)
-    methods = {"session 6": old_match, "session 7": dense_match, "match_knn_ratio": new_match}
-    print(f"median ms of {args.reps} alternating runs; speedup against session 6; same = identical matches")
-    print("descriptors  keypoints  " + "  ".join(f"{m:>13s}" for m in methods) + "  speedup  matches  same")
+    methods = {"distance matrix": distance_matrix_match, "dense, then mask": dense_match,
+               "match_knn_ratio": library_match}
+    print(f"median ms of {args.reps} alternating runs; speedup against the distance matrix; same = identical matches")
+    print("descriptors  keypoints  " + "  ".join(f"{m:>16s}" for m in methods) + "  speedup  matches  same")
     for binary in (True, False):
         for n in args.keypoints:
             data = views(n, binary, rng)
@@ -94,8 +95,8 @@ def main() -> None:
             same = all(np.array_equal(o[0], outs[0][0]) and np.array_equal(o[1], outs[0][1]) for o in outs)
             ms = {m: 1e3 * float(np.median(t)) for m, t in times.items()}
             print(f"{'ORB 256 bit' if binary else 'float 64':11s}  {n:9d}  "
-                  + "  ".join(f"{ms[m]:13.1f}" for m in methods)
-                  + f"  {ms['session 6'] / ms['match_knn_ratio']:6.1f}x  {len(outs[1][0]):7d}  {same}")
+                  + "  ".join(f"{ms[m]:16.1f}" for m in methods)
+                  + f"  {ms['distance matrix'] / ms['match_knn_ratio']:6.1f}x  {len(outs[1][0]):7d}  {same}")
 
 
 if __name__ == "__main__":
