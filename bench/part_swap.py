@@ -6,8 +6,8 @@
 Any `evaluate.py task=matching` override works (dataset, rotation_tta...). `aliked_kp_xfeat_desc`: ALIKED-n16rot's
 keypoints with XFeat's dense descriptors sampled at them (the project's convention); `xfeat_kp_aliked_desc`: XFeat's
 keypoints with ALIKED's SDDH descriptors computed at them; `aliked_kp_uwnet_desc`: ALIKED's keypoints with the shipped
-UWNet's dense descriptors sampled at them. Result (session 15, BENCHMARKS.md "Which part is the
-gap"): the keypoints carry the difference.
+UWNet's dense descriptors sampled at them. Result (BENCHMARKS.md, `bench/part_swap.py`): the keypoints carry the
+difference.
 """
 
 from __future__ import annotations

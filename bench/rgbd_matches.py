@@ -1,16 +1,16 @@
 """How many matches between consecutive frames of an RGB-D sequence are correct, by the ground truth: an upper
 bound on what a monocular tracker can use, whatever its logic.
 
-    nice .venv/bin/python bench/rgbd_matches.py [ROOT] [--extractors xfeat orb sift aliked] [--max-keypoints 2000]
-    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --max-keypoints 4096 --xfeat-threshold 0.01
-    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --xfeat-resize-min 1280   # XFeat on 2x frames
-    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat aliked --lightglue   # matched by (Lighter)LightGlue
-    nice .venv/bin/python bench/rgbd_matches.py --extractors xfeat --lightglue --pairs 55:0 57:0 57:1  # loop pairs
+    nice .venv/bin/python bench/rgbd_matches.py ROOT [--extractors xfeat orb sift aliked] [--max-keypoints 2000]
+    nice .venv/bin/python bench/rgbd_matches.py ROOT --extractors xfeat --max-keypoints 4096 --xfeat-threshold 0.01
+    nice .venv/bin/python bench/rgbd_matches.py ROOT --extractors xfeat --xfeat-resize-min 1280   # XFeat on 2x frames
+    nice .venv/bin/python bench/rgbd_matches.py ROOT --extractors xfeat aliked --lightglue   # by (Lighter)LightGlue
+    nice .venv/bin/python bench/rgbd_matches.py ROOT --extractors xfeat --lightglue --pairs 55:0 57:0 57:1  # loop pairs
 
-ROOT is a TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt; default: the TUM fr3 cabinet keyframes of
-../shared/data). For each pair (i, i+step), the SLAM's matcher (mutual nearest neighbours, ratio 0.8, the tracker's
-distance gate) matches the two keypoint sets; a match is correct when the keypoint of frame i, lifted with its depth
-and moved by the true relative pose, lands within 4 px of its partner in frame i+step. A tracked frame needs ~30
+ROOT is a TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt; e.g. keyframes of TUM fr3 cabinet). For each
+pair (i, i+step), the SLAM's matcher (mutual nearest neighbours, ratio 0.8, the tracker's distance gate) matches
+the two keypoint sets; a match is correct when the keypoint of frame i, lifted with its depth and moved by the true
+relative pose, lands within 4 px of its partner in frame i+step. A tracked frame needs ~30
 (`tracking.min_inliers`). `--lightglue` matches with LightGlue instead (`ruslam.models.lightglue`: LighterGlue for
 XFeat, LightGlue's ALIKED weights for ALIKED): what a learned matcher would give the tracker. `--pairs I:J` counts
 named pairs instead, one line each (e.g. the revisit at the end of a loop, for loop verification).
@@ -31,7 +31,6 @@ from ruslam.slam.readers import read_tum_trajectory
 from ruslam.slam.sequence_folder import read_sequence
 from ruslam.slam.tracking import TrackingConfig
 
-DEFAULT_ROOT = Path(__file__).resolve().parents[2] / "shared/data/sequences/tum_freiburg3_cabinet_keyframes"
 DEPTH_SCALE = 5000.0  # TUM: 16-bit depth PNG, metres = value / 5000
 
 
@@ -48,7 +47,7 @@ def correct_matches(k1, k2, depth1, K, T_21, max_px=4.0) -> np.ndarray:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("root", nargs="?", default=str(DEFAULT_ROOT))
+    ap.add_argument("root", help="a TUM RGB-D folder")
     ap.add_argument("--extractors", nargs="+", default=["xfeat", "orb", "sift", "aliked"])
     ap.add_argument("--max-keypoints", type=int, default=2000)
     ap.add_argument("--xfeat-threshold", type=float, default=None, help="XFeat's detection threshold (its own: 0.05)")

@@ -11,8 +11,8 @@ SLAM figure is frames / wall time of the whole run (extraction, tracking, mappin
 the mapper's thread runs alongside and the run ends when its queue is done), so the ratio says what the SLAM adds on
 top of the extractor. Per-frame times are the tracking thread's (in threaded mode they exclude the mapping it no
 longer waits for). Accuracy (APE after Sim3/SE3 alignment, % of path) is
-printed alongside, so a faster setting that breaks tracking shows up. Goals (issue 6): >= 10 frames/s with the
-learned extractor, >= 25 with ORB.
+printed alongside, so a faster setting that breaks tracking shows up. Goals: >= 10 frames/s with the learned
+extractor, >= 25 with ORB.
 
 Memory: the resident set size is sampled every 0.5 s during each SLAM run; the bench prints its peak and its
 growth over the second half of the frames (MB per 1,000 frames) next to the map's final size, so a leak (growth

@@ -6,8 +6,8 @@ Measured in one run on the same inputs: `PseudoUnderwater` (random Jerlov type, 
 on batches of ``--batch`` images; a plain per-pixel numpy reference (a Python loop over pixels, each pixel doing
 eq. 4 with its PSF taps); and, as a stronger baseline, a vectorized numpy version (whole-array operations).
 The torch CPU time per image is printed too: on a shared machine the wall-clock rate depends on the load.
-Before timing, both references are checked to give the torch result (noise off). Issue 2 targets: >= 30
-images/s on 2 cores and >= 20x the per-pixel numpy reference.
+Before timing, both references are checked to give the torch result (noise off). Targets: >= 30 images/s on 2
+cores and >= 20x the per-pixel numpy reference.
 """
 
 from __future__ import annotations
