@@ -14,7 +14,7 @@ turbid coastal water) and L = 0.7. Ambient light at depth is what the water leav
 the blue of clear ocean, the green of coastal water and the yellow-green of turbid 9C without a hand-typed
 colour. It ignores the spectral shape of the scattering that turns this light towards the camera (bb/c), which
 in clear water makes the real veil bluer still. L = 0.7: auto-exposure puts the open-water background high in
-the range; eqs. 5-7 on all 23 EUVP samples in ../shared/data (8 regions each, seed 0) give a median region L of
+the range; eqs. 5-7 on 23 EUVP test samples (8 regions each, seed 0) give a median region L of
 0.70.
 """
 

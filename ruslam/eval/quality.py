@@ -1,6 +1,6 @@
 """Reference-free underwater image quality: UCIQE (Yang & Sowmya 2015) and UIQM (Panetta, Gao & Agaian 2016).
 
-Implemented from the papers' definitions, with the choices they leave open stated here (DESIGN.md section 8).
+Implemented from the papers' definitions, with the choices they leave open stated here (docs/design.md).
 Every function takes an RGB image [H,W,3], uint8 or float in [0,1]; UIQM terms work on 0-255 intensities as
 the paper's constants expect (float arithmetic: no uint8 wrap-around of R - G, no integer division).
 

@@ -65,7 +65,7 @@ def deform_conv2d_fast(
 class DeformableConv(nn.Module):
     """3x3 deformable convolution whose offsets come from a plain conv initialized to zero.
 
-    With zero offsets the layer equals an ordinary convolution, so training starts stable (DESIGN.md section 8).
+    With zero offsets the layer equals an ordinary convolution, so training starts stable (docs/design.md).
     The weights live in a torchvision `DeformConv2d`; `fast=True` computes it with `deform_conv2d_fast`.
     """
 

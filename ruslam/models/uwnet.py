@@ -1,6 +1,6 @@
 """UWNet (paper 3.2.2): MobileNetV2 backbone, keypoint (FPE), local descriptor (DG) and global (NetVLAD) heads.
 
-Layer indexing (DESIGN.md section 8): torchvision ``mobilenet_v2().features[:7]`` is "the first seven layers" and
+Layer indexing (docs/design.md): torchvision ``mobilenet_v2().features[:7]`` is "the first seven layers" and
 gives F1, 32 channels at 1/8; ``features[7:18]`` continues to "layer 18", F2, 320 channels at 1/32 (HF-Net's
 ``layer_18``), not the 1280-channel conv of ``features[18]``.
 

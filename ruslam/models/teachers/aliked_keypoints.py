@@ -1,8 +1,8 @@
-"""ALIKED-n16rot as the keypoint teacher, XFeat as the descriptor teacher (issue 11: "ALIKED as a local teacher").
+"""ALIKED-n16rot as the keypoint teacher, XFeat as the descriptor teacher (`teacher=aliked_xfeat_vlad`).
 
 Why: on the procedural Upatches, ALIKED's keypoints with XFeat's descriptors sampled at them score MMA@3 86.3 at
-0-30° against XFeat's own 63.6, and XFeat's keypoints with ALIKED's descriptors 60.4 (BENCHMARKS.md, "Which part
-is the gap"): the student's detector, not its descriptor, is what separates it from ALIKED.
+0-30° against XFeat's own 63.6, and XFeat's keypoints with ALIKED's descriptors 60.4 (BENCHMARKS.md,
+`bench/part_swap.py`): the student's detector, not its descriptor, is what separates it from ALIKED.
 
 ALIKED's dense score map (sigmoid, full resolution) is pooled into the 65-cell layout of the student's keypoint
 head: in each 8x8 cell, the pixels that are local maxima of the score map (ALIKED's own NMS radius) carry their
