@@ -1,20 +1,22 @@
-"""Shared test fixtures: the optional real-data folder and a composed-config helper."""
+"""Shared test fixtures: the optional real-sample folder and a composed-config helper."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
+# Optional real samples (EUVP images, NYU frames, TUM keyframes): $RUSLAM_SAMPLES, else shared/data beside the clone.
+SHARED_DATA = Path(os.environ.get("RUSLAM_SAMPLES", ROOT.parent / "shared" / "data"))
 
 
 @pytest.fixture
 def shared_data() -> Path:
-    """The optional ../shared/data folder of real samples; tests using it skip when it is absent."""
+    """The optional folder of real samples; tests using it skip when it is absent."""
     if not SHARED_DATA.is_dir():
-        pytest.skip("../shared/data is absent (optional real-data samples)")
+        pytest.skip(f"{SHARED_DATA} is absent (optional real samples; set RUSLAM_SAMPLES)")
     return SHARED_DATA
 
 

@@ -1,4 +1,4 @@
-"""UWNet shapes, the layer indexing of DESIGN.md section 8, the ablation and the backbone weight loader."""
+"""UWNet shapes, the layer indexing of docs/design.md, the ablation and the backbone weight loader."""
 
 import pytest
 import torch
