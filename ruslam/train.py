@@ -28,7 +28,7 @@ def _instantiate_all(group: DictConfig | None) -> list:
 
 
 # Blocks a fine-tuning run may add to the weights it starts from: zero-initialised, so the start is unchanged.
-GROWABLE = {"keypoint_neighbourhood": "kp_neighbours."}
+GROWABLE = {"keypoint_neighbourhood": "kp_neighbours.", "keypoint_cell": "kp_fine_"}
 
 
 def load_initial_weights(net: torch.nn.Module, path: str | Path) -> None:
@@ -59,6 +59,10 @@ def format_report(before: dict, after: dict, start: str = "untrained") -> str:
 def train(cfg: DictConfig) -> float | None:
     """Fit, report before/after held-out losses, export weights; returns the final held-out loss (for sweeps)."""
     check_train(cfg)
+    if cfg.get("online"):  # no teacher cache: views and targets on the fly on the device (conf/experiment/fine_cells)
+        from ruslam.training.online import train_online  # noqa: PLC0415
+
+        return train_online(cfg)
     pl.seed_everything(cfg.seed, workers=True)
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg.torch_threads))

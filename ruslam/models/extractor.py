@@ -130,8 +130,18 @@ def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     return torch.where(scores == pooled, scores, torch.zeros_like(scores))
 
 
-def cell_logits_to_heatmap(logits: torch.Tensor, cell: int = 8) -> torch.Tensor:
-    """SuperPoint cell layout: [B, cell^2+1, h, w] logits -> [B, h*cell, w*cell] keypoint probability."""
+def logits_cell(logits: torch.Tensor) -> int:
+    """The cell side of a SuperPoint-layout logit map [B, cell^2+1, h, w]: 8 for 65 channels, 4 for 17."""
+    cell = round((logits.shape[1] - 1) ** 0.5)
+    if cell * cell + 1 != logits.shape[1]:
+        raise ValueError(f"keypoint logits need cell^2 + 1 channels, got {logits.shape[1]}.")
+    return cell
+
+
+def cell_logits_to_heatmap(logits: torch.Tensor, cell: int | None = None) -> torch.Tensor:
+    """SuperPoint cell layout: [B, cell^2+1, h, w] logits -> [B, h*cell, w*cell] keypoint probability (the cell
+    read off the channel count when None)."""
+    cell = cell or logits_cell(logits)
     prob = logits.softmax(dim=1)[:, :-1]
     return F.pixel_shuffle(prob, cell)[:, 0]
 
@@ -165,16 +175,17 @@ def decode_sparse(
     reliability: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The one dense-to-sparse decoding of the learned extractors (SuperPoint, XFeat, UWNet), one image:
-    cell logits [1, stride^2+1, h, w] and dense descriptors [1, D, h, w] -> keypoints [N, 2] (x, y) in the
-    (h*stride, w*stride) input cropped to `size`, scores [N], unit descriptors [N, D].
+    cell logits [1, c^2+1, H/c, W/c] and dense descriptors [1, D, H/stride, W/stride] -> keypoints [N, 2] (x, y)
+    in the (H, W) input cropped to `size`, scores [N], unit descriptors [N, D]. The keypoint cell c is read off
+    the logits (8 for 65 channels; 4 for the finer-cell UWNet's 17), the descriptor map's stride is `stride`.
 
     `conf` gives nms_radius, detection_threshold, border and max_keypoints, and optionally subpixel_radius
     (`refine_subpixel`; absent or 0 = integer pixels, as the teachers publish them). With
-    `reliability` [1, 1, h, w] (XFeat), the top-k is taken after weighting each heatmap score by the reliability
-    at the keypoint.
+    `reliability` [1, 1, H/stride, W/stride] (XFeat), the top-k is taken after weighting each heatmap score by the
+    reliability at the keypoint.
     """
     h, w = size
-    heat = cell_logits_to_heatmap(logits, stride)[:, :h, :w].contiguous()
+    heat = cell_logits_to_heatmap(logits)[:, :h, :w].contiguous()
     top_k = 0 if reliability is not None else conf["max_keypoints"]
     (xy, scores), = detect_keypoints(heat, conf["nms_radius"], conf["detection_threshold"], top_k, conf["border"])
     if reliability is not None:

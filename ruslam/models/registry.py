@@ -16,6 +16,7 @@ EXTRACTORS = {
     "orb": "ruslam.models.classical:ORB",
     "sift": "ruslam.models.classical:SIFT",
     "uwnet_xfeat": "ruslam.models.uwnet_extractor:UWNetExtractor",
+    "uwnet_xfeat_s4": "ruslam.models.uwnet_extractor:UWNetFineCellExtractor",
     "uwnet_mobilenet": "ruslam.models.uwnet_extractor:UWNetMobileNetExtractor",
     "xfeat": "ruslam.models.teachers.xfeat:XFeat",
     "superpoint": "ruslam.models.teachers.superpoint:SuperPoint",

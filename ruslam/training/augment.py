@@ -65,8 +65,8 @@ class GeometricAugment:
 
 
 def _warp(x: torch.Tensor, homography: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    return warp_perspective(x[None], homography[None].to(x.dtype), size, mode="bilinear", padding_mode="zeros",
-                            align_corners=True)[0]
+    return warp_perspective(x[None], homography[None].to(device=x.device, dtype=x.dtype), size, mode="bilinear",
+                            padding_mode="zeros", align_corners=True)[0]
 
 
 def cell_homography(homography: torch.Tensor) -> torch.Tensor:
