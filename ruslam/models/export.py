@@ -56,8 +56,8 @@ def _payload(config: dict, state: dict) -> dict:
 
 
 def build_network(config: dict) -> torch.nn.Module:
-    """The student network a weights file's config describes: ``architecture`` "xfeat_student" is variant (b)
-    (`XFeatStudent`), absent is the paper's MobileNetV2 UWNet (variant a)."""
+    """The student network a weights file's config describes: ``architecture`` "xfeat_student" is the XFeat student
+    (`XFeatStudent`), absent is the paper's MobileNetV2 UWNet."""
     config = dict(config)
     arch = config.pop("architecture", "uwnet")
     if arch == "xfeat_student":
@@ -140,9 +140,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--teacher-detector", action="store_true",
-                        help="variant (b) only: put XFeat's own keypoint branch back (no attention), keep the rest")
+                        help="XFeat student only: put XFeat's own keypoint branch back (no attention), keep the rest")
     parser.add_argument("--no-descriptor-residual", action="store_true",
-                        help="variant (b) only: drop the residual block (two DCNs) of the descriptor branch")
+                        help="XFeat student only: drop the residual block (two DCNs) of the descriptor branch")
     args = parser.parse_args(argv)
     net = load_uwnet(args.checkpoint)
     if args.teacher_detector or args.no_descriptor_residual:
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> None:
 
         if not isinstance(net, student.XFeatStudent):
             raise SystemExit(f"{args.checkpoint} is not an XFeat student (variant b): --teacher-detector and "
-                             f"--no-descriptor-residual apply to variant (b) only.")
+                             f"--no-descriptor-residual apply to the XFeat student only.")
         if args.teacher_detector:
             net = student.with_teacher_detector(net).eval()
         if args.no_descriptor_residual:

@@ -117,7 +117,7 @@ def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     if radius <= 0:
         return scores
     # max over a square window is separable: a row pass then a column pass, each as 2r element-wise maxima of
-    # shifted views (same result as max_pool2d, several times cheaper on CPU; BENCHMARKS.md "UWNet working size")
+    # shifted views (same result as max_pool2d, several times cheaper on CPU)
     h, w = scores.shape[-2:]
     padded = F.pad(scores, (radius, radius), value=float("-inf"))
     rows = padded[..., :w]

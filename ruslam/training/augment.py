@@ -1,6 +1,6 @@
 """Augmentations of one distillation sample: photometric on the student input, geometric on input AND targets.
 
-Geometric (issue 4 item 7, beyond the paper): XFeat/SuperPoint targets are not rotation-invariant, but the
+Geometric (beyond the paper): XFeat/SuperPoint targets are not rotation-invariant, but the
 student can be. The student sees the image warped by a random homography (in-plane rotation up to 180 degrees,
 scale, mild perspective); the teacher's dense target maps, computed once on the unwarped clean image, are warped
 spatially by the same homography with their *values unchanged*, so the student must give the same descriptor
