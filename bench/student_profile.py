@@ -1,4 +1,4 @@
-"""Where the XFeat student's (UWNet variant b) extraction time goes, stage by stage, against XFeat's own stages.
+"""Where the XFeat student's extraction time goes, stage by stage, against XFeat's own stages.
 
     nice .venv/bin/python bench/student_profile.py [--reps 15] [--threads 2] [--weights PATH]
 
@@ -63,14 +63,14 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--reps", type=int, default=15)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="variant (b) weights (default: shipped);"
+    parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="XFeat student weights (default: shipped);"
                         " the per-block rows use every block of the architecture at step 0")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     image = test_image()
     uwnet = UWNetExtractor.from_file(args.weights)
     if getattr(uwnet.net, "architecture", None) != "xfeat_student":
-        raise SystemExit(f"--weights {args.weights}: not an XFeat student (variant b) file.")
+        raise SystemExit(f"--weights {args.weights}: not an XFeat student file.")
     s = XFeatStudent().eval()  # every block, whatever the file keeps (a block's cost does not depend on weights)
     full = UWNetExtractor.from_file(args.weights)
     full.net = s

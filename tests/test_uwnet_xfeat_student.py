@@ -1,4 +1,4 @@
-"""UWNet variant (b): step 0 reproduces the XFeat teacher; export/load by architecture; trains through configs."""
+"""The XFeat student: step 0 reproduces the XFeat teacher; export/load by architecture; trains through configs."""
 
 import numpy as np
 import pytest

@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
         from ruslam.models import uwnet_xfeat_student as student  # noqa: PLC0415
 
         if not isinstance(net, student.XFeatStudent):
-            raise SystemExit(f"{args.checkpoint} is not an XFeat student (variant b): --teacher-detector and "
+            raise SystemExit(f"{args.checkpoint} is not an XFeat student: --teacher-detector and "
                              f"--no-descriptor-residual apply to the XFeat student only.")
         if args.teacher_detector:
             net = student.with_teacher_detector(net).eval()

@@ -35,7 +35,7 @@ class DistillationModule(pl.LightningModule):
         # Used when the batch holds two views (datamodule.pair_views=true): total = eq. 8 + weight * InfoNCE.
         self.correspondence = correspondence
         self.correspondence_weight = correspondence_weight
-        # Used with the correspondence loss when the net outputs a reliability map (variant b) and the weight > 0.
+        # Used with the correspondence loss when the net outputs a reliability map (XFeat student) and the weight > 0.
         self.reliability = reliability if reliability is not None else ReliabilityLoss()
         self.reliability_weight = reliability_weight
         # The two views' keypoint heat made to agree under the homography (needs pair views and a weight > 0).
