@@ -145,7 +145,7 @@ def _grid_setup(name: str):
 
 def test_xfeat_keeps_tracking_through_a_fast_turn_in_turbid_water(cache):
     """DEV `hard_s5` (Jerlov 3C, 10 deg/frame corners, 15 % of the altitude per frame, pitch 48 deg), first 45 frames.
-    With the session-6 options (CLAHE on flat frames only, descriptor gate 0.5) XFeat lost the track in the first
+    With CLAHE on flat frames only and a 0.5 descriptor gate, XFeat lost the track in the first
     corner: 24 of the 45 frames in 2 maps (measured); the evaluation's options (CLAHE on every frame, gate 0.6) keep
     one map."""
     from ruslam.slam.robustness import robustness_sequence
@@ -158,10 +158,11 @@ def test_xfeat_keeps_tracking_through_a_fast_turn_in_turbid_water(cache):
 
 
 def test_xfeat_keeps_its_scale_over_low_texture(cache):
-    """DEV `lowtex_s4` (contrast 0.38, density 0.28), first 60 frames, loop closing off. At 320x240 XFeat's 8 px
-    cells re-detect ~2/3 of its keypoints from one frame to the next (bench/keypoint_shift.py); with that input the
-    monocular scale collapsed, 0.43 -> 0.06 between the first and the fifth 10-frame window (measured,
-    bench/scale_drift.py). The evaluation upsamples such frames to 640 px for XFeat (`resize_min`)."""
+    """DEV `lowtex_s4` (contrast 0.38, density 0.28), first 60 frames, loop closing off. XFeat's dense keypoints on
+    low texture come in near-duplicate pairs that share a descriptor: a window ratio test against them rejected most
+    right matches, tracking fell back to PnP on half-wrong matches, and the scale collapsed or held depending on
+    floating-point details (BLAS threads). With duplicates inside the noise radius ignored, the scale must hold
+    for any thread count."""
     from ruslam.slam.robustness import SurveyConfig, robustness_sequence, survey_poses
 
     knobs = dict(seed=4, contrast=0.38, density=0.28, frames=60)

@@ -202,6 +202,21 @@ def test_window_search_respects_radius_and_uniqueness():
     assert len(np.unique(ik)) == len(ik) == 1
 
 
+def test_window_ratio_test_ignores_duplicate_detections_of_the_same_location():
+    """A dense detector's neighbour 1 px away shares the descriptor: it is the same image location, so the ratio test
+    must not reject the match for it (distinct_px); a look-alike 10 px away is a real ambiguity and still rejects it."""
+    point_desc = np.array([[1.0, 0.0, 0.0]], np.float32)
+    desc = np.array([[np.cos(0.10), np.sin(0.10), 0], [np.cos(0.11), 0, np.sin(0.11)], [0, 0, 1]], np.float32)
+    point = np.array([[100.0, 100.0]])
+    kp = np.array([[100.5, 100.0], [101.5, 100.0], [300.0, 300.0]])
+    args = dict(binary=False, max_distance=0.5, ratio=0.8)
+    assert len(match_in_windows(point, point_desc, kp, desc, 15.0, **args)[0]) == 0  # plain ratio test: rejected
+    ip, ik = match_in_windows(point, point_desc, kp, desc, 15.0, **args, distinct_px=2.45)
+    assert ip.tolist() == [0] and ik.tolist() == [0]
+    kp[1] = [110.0, 100.0]  # the look-alike is now a distinct location inside the window
+    assert len(match_in_windows(point, point_desc, kp, desc, 15.0, **args, distinct_px=2.45)[0]) == 0
+
+
 def test_map_point_descriptor_is_the_least_median_distance_one_and_follows_observations():
     from ruslam.slam.map import KeyFrame, PointStore, update_descriptors
 

@@ -98,11 +98,14 @@ def _match_masked_binary(desc1, desc2, max_distance, ratio, mutual, mask) -> tup
 def match_in_windows(
     uv: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray, radius,
     binary: bool, max_distance: float, ratio: float = 0.9, available: np.ndarray | None = None,
+    distinct_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Match projected points uv [M, 2] to keypoints [N, 2] inside a window of `radius` pixels (scalar or [M]).
 
-    Best candidate per point by descriptor distance, gated by `max_distance` and a ratio test against the second
-    candidate in the same window; each keypoint is given to at most one point (the closest in descriptor space).
+    Best candidate per point by descriptor distance, gated by `max_distance` and a ratio test against the best
+    candidate in the same window that lies more than `distinct_px` from it (keypoints closer than the measurement
+    noise are one image location: a dense detector's neighbours share its descriptor, and a ratio test against
+    them rejects the right match); each keypoint is given to at most one point (the closest in descriptor space).
     `available` [N] bool masks keypoints already matched. Returns (point indices, keypoint indices).
     """
     empty = (np.zeros(0, int), np.zeros(0, int))
@@ -125,9 +128,12 @@ def match_in_windows(
     first[1:] = ip[1:] != ip[:-1]
     starts = np.nonzero(first)[0]
     best_ip, best_ik, best_d = ip[starts], ik[starts], dd[starts]
-    has_second = np.append(starts[1:], len(ip)) - starts > 1
+    group = np.cumsum(first) - 1
+    rival = ~first  # candidates other than the best, and (distinct_px) away from it
+    if distinct_px > 0:
+        rival &= np.sum((keypoints[ik] - keypoints[best_ik[group]]) ** 2, 1) > distinct_px**2
     second_d = np.full(len(starts), np.inf, dtype=np.float32)
-    second_d[has_second] = dd[starts[has_second] + 1]
+    np.minimum.at(second_d, group[rival], dd[rival])
     ok = (best_d <= max_distance) & (best_d < ratio * second_d)
     best_ip, best_ik, best_d = best_ip[ok], best_ik[ok], best_d[ok]
     order = np.argsort(best_d, kind="stable")  # one point per keypoint: the closest descriptor wins

@@ -23,7 +23,7 @@ import numpy as np
 
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
-from ruslam.slam.geometry import solve_pnp_ransac, two_view_initialization
+from ruslam.slam.geometry import CHI2_2DOF, solve_pnp_ransac, two_view_initialization
 from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
@@ -81,6 +81,7 @@ class Tracker:
         self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
+        self.noise_radius = np.sqrt(CHI2_2DOF) * self.sigma  # px: keypoints closer than this are one location
         self.state = "init"
         self.init_frame: Frame | None = None
         self.last: Frame | None = None
@@ -420,7 +421,7 @@ class Tracker:
                 np.add.at(self.store.visible, points[vis], 1)
             ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
                                       radius, self.binary, self.max_distance, self.cfg.window_ratio,
-                                      available=frame.points < 0)
+                                      available=frame.points < 0, distinct_px=self.noise_radius)
             frame.points[ik] = points[vis[ip]]
         return int(np.count_nonzero(frame.points >= 0))
 
