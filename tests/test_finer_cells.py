@@ -108,3 +108,15 @@ def test_online_training_rehearsal(tmp_path, teacher):
     assert set(report["held_out_before"]) >= {"detector", "local", "global", "correspondence", "total"}
     net = load_uwnet(tmp_path / "uwnet_xfeat_s4.pt")
     assert net.config["keypoint_cell"] == 4
+
+
+def test_upsampled_cells_are_the_2x_detector_at_1x():
+    from ruslam.models.uwnet_xfeat_student import upsampled_cells
+
+    logits = torch.randn(1, 65, 3, 4) * 3
+    target = upsampled_cells(logits, 4)
+    assert target.shape == (1, 17, 3, 4)
+    heat2x = cell_logits_to_heatmap(logits)  # [1, 24, 32] of the 2x image
+    pooled = torch.nn.functional.avg_pool2d(heat2x[:, None], 2)[:, 0] * 4  # its probability per 1x pixel
+    torch.testing.assert_close(cell_logits_to_heatmap(target), pooled, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(target.exp().sum(1), torch.ones(1, 3, 4))

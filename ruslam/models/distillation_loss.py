@@ -42,6 +42,8 @@ class DistillationLoss(nn.Module):
             from ruslam.models.uwnet_xfeat_student import subcell_targets  # noqa: PLC0415
 
             t_logits, mask = subcell_targets(t_logits, mask, logits_cell(logits))
+        if mask.shape[-2:] != logits.shape[-2:]:  # finer-cell targets given as such (`fine_teacher`)
+            mask = F.interpolate(mask[:, None], size=logits.shape[-2:], mode="nearest")[:, 0]
         soft = t_logits.softmax(dim=1)
         ce = -(soft * logits.log_softmax(dim=1)).sum(1)
         detector = (ce * mask).sum() / mask.sum().clamp_min(1.0)

@@ -37,7 +37,7 @@ from ruslam.models.netvlad import NetVLAD
 CELL = 8
 SIZE_MULTIPLE = 32
 KEYPOINT_CELLS = (8, 4)
-FINE_CHANNELS = 32
+FINE_CHANNELS = 64
 
 
 def _pad(image: torch.Tensor) -> torch.Tensor:
@@ -64,6 +64,17 @@ def subcell_logits(logits: torch.Tensor, cell: int) -> torch.Tensor:
     # log(e^whole - e^own); the 8x8 dustbin's share keeps it finite, clamped for a cell that puts ~all on a pixel
     rest = whole + torch.log(-torch.expm1((own - whole).clamp_max(-1e-6)))
     return torch.cat([pixels, rest.to(pixels.dtype)], 1)
+
+
+def upsampled_cells(logits: torch.Tensor, cell: int = 4) -> torch.Tensor:
+    """8x8-cell logits [B, 65, h, w] of an image upsampled by 8/cell -> log-probabilities [B, cell^2+1, h, w] of
+    `cell` x `cell` cells of the image itself: each cell's in-cell probabilities summed over the (8/cell)^2 pixels
+    of the upsampled image that make one pixel, its dustbin kept (the 2x working size's detector as targets)."""
+    up = CELL // cell
+    b, _, h, w = logits.shape
+    prob = logits.float().softmax(1)
+    pixels = prob[:, :-1].reshape(b, cell, up, cell, up, h, w).sum((2, 4)).reshape(b, cell * cell, h, w)
+    return torch.cat([pixels, prob[:, -1:]], 1).clamp_min(1e-8).log()
 
 
 def subcell_targets(logits: torch.Tensor, mask: torch.Tensor | None, cell: int):
@@ -129,6 +140,9 @@ class XFeatStudent(nn.Module):
         if keypoint_cell != CELL:  # the stride-4 correction: XFeat's 1/4 features (24) + the cell's grey pixels
             self.kp_fine_local = nn.Conv2d(24 + keypoint_cell**2, FINE_CHANNELS, 1)
             self.kp_fine_hidden = nn.Conv2d(64, FINE_CHANNELS, 1, bias=False)  # the 8x8 head's hidden features
+            # a sub-cell sees its neighbours (depthwise 3x3, then a pointwise mix): a peak on a border needs both
+            k = FINE_CHANNELS
+            self.kp_fine_mix = nn.Sequential(nn.Conv2d(k, k, 3, padding=1, groups=k), nn.Conv2d(k, k, 1), nn.ReLU(True))
             self.kp_fine_out = _zero_(nn.Conv2d(FINE_CHANNELS, keypoint_cell**2 + 1, 1))
         if not descriptor_residual:  # XFeat's fused features are the descriptors (`without_descriptor_residual`)
             self.deform = None
@@ -188,9 +202,9 @@ class XFeatStudent(nn.Module):
         c = self.keypoint_cell
         if c != CELL:
             up = CELL // c
-            local = torch.cat([x2, m._unfold2d(g, ws=c)], 1)
+            local = torch.cat([x2, F.pixel_unshuffle(g, c)], 1)  # the cell's grey pixels, as XFeat's unfold
             fine = self.kp_fine_local(local) + F.interpolate(self.kp_fine_hidden(hidden), scale_factor=up)
-            logits = subcell_logits(logits, c) + self.kp_fine_out(F.relu(fine))
+            logits = subcell_logits(logits, c) + self.kp_fine_out(self.kp_fine_mix(F.relu(fine)))
         logits = logits[..., : h // c, : w // c]
         vlad = self.netvlad(desc.contiguous())
         vlad = vlad.sign() * (vlad.abs() + 1e-6).pow(self.vlad_power)  # the teacher's signed power law

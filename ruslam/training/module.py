@@ -28,7 +28,8 @@ class DistillationModule(pl.LightningModule):
                  channels_last: bool = True, correspondence: CorrespondenceLoss | None = None,
                  correspondence_weight: float = 1.0, reliability: ReliabilityLoss | None = None,
                  reliability_weight: float = 0.0, trainable: list[str] | None = None,
-                 repeatability: RepeatabilityLoss | None = None, repeatability_weight: float = 0.0):
+                 repeatability: RepeatabilityLoss | None = None, repeatability_weight: float = 0.0,
+                 fine_teacher: str | None = None, fine_teacher_scale: int = 2):
         super().__init__()
         self.net = net  # UWNet or XFeatStudent: same outputs, a ``config`` dict for export
         self.loss = loss if loss is not None else DistillationLoss()
@@ -42,6 +43,15 @@ class DistillationModule(pl.LightningModule):
         self.repeatability = repeatability if repeatability is not None else RepeatabilityLoss()
         self.repeatability_weight = repeatability_weight
         self.optimizer_factory = optimizer
+        # A finer-cell student's keypoint targets from a UWNet weights file run on the view upsampled by
+        # `fine_teacher_scale` (its 8x8 cells are then 8/scale-pixel cells of the view; docs/finer_cells.md). Kept
+        # out of the module's parameters and checkpoints, frozen, always in eval mode.
+        self._fine_teacher = []
+        self.fine_teacher_scale = int(fine_teacher_scale)
+        if fine_teacher:
+            from ruslam.models.export import load_uwnet  # noqa: PLC0415
+
+            self._fine_teacher.append(load_uwnet(fine_teacher).eval().requires_grad_(False))
         # Parameter-name prefixes of the net to train (e.g. ["xfeat.heatmap_head."]); the rest of the net and the
         # loss weights are frozen, so no gradient flows through them. None trains everything.
         self.trainable = None if trainable is None else tuple(trainable)
@@ -60,10 +70,14 @@ class DistillationModule(pl.LightningModule):
         self._check_targets(batch)
         pair = batch.get("pair")
         if pair is None:
+            if self._fine_teacher:
+                batch = {**batch, "keypoint_logits": self._fine_targets(batch["image"])}
             pred = self.net(batch["image"].contiguous(memory_format=self.memory_format))
             return self.loss(pred, batch, batch.get("mask"))
         # Both views in one forward pass; eq. 8 on both, the correspondence loss between them.
         both = {k: torch.cat([batch[k], pair[k]]) for k in ("image", "mask", *TARGET_KEYS)}
+        if self._fine_teacher:
+            both["keypoint_logits"] = self._fine_targets(both["image"])
         pred = self.net(both["image"].contiguous(memory_format=self.memory_format))
         out = self.loss(pred, both, both["mask"])
         if self.correspondence is not None:
@@ -82,6 +96,15 @@ class DistillationModule(pl.LightningModule):
             out["repeatability"] = rep
             out["total"] = out["total"] + self.repeatability_weight * rep
         return out
+
+    @torch.no_grad()
+    def _fine_targets(self, image: torch.Tensor) -> torch.Tensor:
+        from ruslam.models.uwnet_xfeat_student import CELL, upsampled_cells  # noqa: PLC0415
+
+        teacher = self._fine_teacher[0].to(image.device).eval()
+        s = self.fine_teacher_scale
+        up = torch.nn.functional.interpolate(image.float(), scale_factor=s, mode="bilinear", align_corners=False)
+        return upsampled_cells(teacher(up.clamp(0, 1))["keypoint_logits"].float(), CELL // s)
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         return self.net(image)
