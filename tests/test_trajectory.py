@@ -71,6 +71,16 @@ def test_rpe_uses_a_tenth_of_a_metre_and_measures_scale_drift():
     assert out.rpe_rmse == pytest.approx(0.0125, rel=1e-9)
 
 
+def test_rpe_is_nan_when_the_path_is_shorter_than_its_delta():
+    """A 5 cm path has no pair of poses 0.1 m apart: APE is still computed, RPE is reported as n/a (NaN)."""
+    n = 20
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n) * 0.0025
+    poses[:, 1, 3] = np.sin(np.arange(n)) * 0.001
+    out = evaluate_trajectory(Trajectory(np.arange(n) * 0.1, poses), Trajectory(np.arange(n) * 0.1, poses))
+    assert np.isnan(out.rpe_rmse) and out.ape_rmse < 1e-9
+
+
 def test_association_by_timestamp_and_clear_errors():
     ref = _helix()
     part = Trajectory(ref.timestamps[10:50] + 0.004, ref.poses[10:50])  # 4 ms clock offset, subset of frames

@@ -11,7 +11,7 @@ import copy
 from dataclasses import dataclass
 
 import numpy as np
-from evo.core import metrics, sync
+from evo.core import filters, metrics, sync
 from evo.core.trajectory import PoseTrajectory3D
 
 from ruslam.slam.readers import Trajectory
@@ -63,7 +63,7 @@ def evaluate_trajectory(estimate: Trajectory, reference: Trajectory, alignment: 
     try:
         rpe.process_data((ref, aligned))
         rpe_rmse = float(rpe.get_statistic(metrics.StatisticsType.rmse))
-    except metrics.MetricsException:  # ground truth shorter than one delta: no pair
+    except (metrics.MetricsException, filters.FilterException):  # a path shorter than one delta: RPE is n/a
         pass
     return TrajectoryErrors(ape_rmse=float(ape.get_statistic(metrics.StatisticsType.rmse)), rpe_rmse=rpe_rmse,
                             scale=float(scale), matched=ref.num_poses, aligned=aligned, reference=ref)

@@ -77,8 +77,10 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
     return np.sum(np.where(e2 < CHI2_1DOF, CHI2_2DOF - e2, 0) + np.where(e1 < CHI2_1DOF, CHI2_2DOF - e1, 0))
 
 
-def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_px=2.0, rotation_ratio=0.5):
-    """Pick the (R, t) that triangulates the most good points; refuse when two hypotheses are close."""
+def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_px=2.0, rotation_ratio=0.5,
+                 prior_R=None):
+    """Pick the (R, t) that triangulates the most good points; refuse when two hypotheses are close and the
+    rotation prior (`prior_R`, default none: identity) does not clearly prefer one."""
     T1 = np.eye(4)
     results = []
     for R, t in candidates:
@@ -96,10 +98,15 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
     close = [r for r in results if r[0] > 0.7 * results[0][0]]
     if len(close) > 1:
         # A plane (a seafloor seen from above) has two exact solutions, the spurious one rotating the camera by
-        # about the parallax angle (Faugeras-Lustman): between video frames the smaller rotation is the real one
-        # when it is clearly smaller; otherwise wait for a better pair.
-        close.sort(key=lambda r: _rotation_deg(r[1]))
-        if _rotation_deg(close[0][1]) > rotation_ratio * _rotation_deg(close[1][1]):
+        # about the parallax angle (Faugeras-Lustman): between video frames the one closer to the expected rotation
+        # (none, or the last motion's) is the real one when it is clearly closer; otherwise wait for a better pair.
+        prior = np.eye(3) if prior_R is None else prior_R
+
+        def off_prior(r):
+            return _rotation_deg(pose_matrix(r[1][:3, :3] @ prior.T, np.zeros(3)))
+
+        close.sort(key=off_prior)
+        if off_prior(close[0]) > rotation_ratio * off_prior(close[1]):
             return None
     n_best, T2, X, good, par = close[0]
     if n_best < min_points or par < min_parallax_deg:
@@ -113,7 +120,7 @@ def _rotation_deg(T: np.ndarray) -> float:
 
 def two_view_initialization(
     x1: np.ndarray, x2: np.ndarray, K: np.ndarray, seed: int = 0, min_parallax_deg: float = 1.0,
-    min_points: int = 50, homography_ratio: float = 0.40, sigma: float = 1.0,
+    min_points: int = 50, homography_ratio: float = 0.40, sigma: float = 1.0, prior_R: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
     """Monocular map initialisation from matches x1 <-> x2 (ORB-SLAM: score H and F, keep the better model).
 
@@ -121,6 +128,7 @@ def two_view_initialization(
     scaled to unit median depth in camera 1, or None when the geometry is not trustworthy (too little parallax,
     ambiguous solutions, too few points). `sigma` is the keypoint noise in px: models are scored against it, so a
     learned extractor's noisier keypoints do not make F (degenerate on a flat seafloor) look better than H.
+    `prior_R`: the expected rotation of camera 2 relative to camera 1 (a motion model), None for no rotation.
     """
     if len(x1) < max(min_points, 8):
         return None
@@ -143,7 +151,7 @@ def two_view_initialization(
         E = K.T @ F[:3] @ K
         R1, R2, t = cv2.decomposeEssentialMat(E)
         candidates = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
-    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma)
+    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma, prior_R=prior_R)
     if best is None:
         return None
     T2, X, good = best

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from ruslam.errors import MissingInput
 from ruslam.slam.readers import IMAGE_SUFFIXES, Sequence, read_euroc, read_image_folder, read_tum
 
 log = logging.getLogger(__name__)
@@ -34,7 +35,7 @@ def find_sequences(root: str | Path, max_depth: int = 3) -> dict[str, str]:
     root's own name when the root is a sequence), sorted by name."""
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"Sequence folder {root} does not exist (dataset.root=<folder of sequences>).")
+        raise MissingInput(f"Sequence folder {root} does not exist (dataset.root=<folder of sequences>).")
     found = {}
 
     def visit(folder: Path, depth: int) -> None:
@@ -47,8 +48,11 @@ def find_sequences(root: str | Path, max_depth: int = 3) -> dict[str, str]:
                 visit(sub, depth + 1)
 
     visit(root, 0)
+    if not found and any(p.suffix.lower() in IMAGE_SUFFIXES for p in root.iterdir()):
+        raise MissingInput(f"{root / 'calibration.yaml'} is missing: an image folder needs the camera (model, width, "
+                           "height, intrinsics: [fx, fy, cx, cy], distortion: [...]) next to its images.")
     if not found:
-        raise FileNotFoundError(f"No sequence found in {root} (searched {max_depth} levels deep): expected EuRoC "
+        raise MissingInput(f"No sequence found in {root} (searched {max_depth} levels deep): expected EuRoC "
                                 "folders (mav0/cam0/), TUM RGB-D folders (rgb.txt) or image folders with a "
                                 "calibration.yaml.")
     return dict(sorted(found.items()))
@@ -62,7 +66,7 @@ def read_sequence(path: str | Path, sensor: str = "mono", name: str | None = Non
     path = Path(path)
     kind = sequence_format(path) if path.is_dir() else None
     if kind is None:
-        raise FileNotFoundError(f"{path} is not a sequence: expected a EuRoC folder (mav0/cam0/), a TUM RGB-D "
+        raise MissingInput(f"{path} is not a sequence: expected a EuRoC folder (mav0/cam0/), a TUM RGB-D "
                                 "folder (rgb.txt) or an image folder with a calibration.yaml.")
     name = name or path.resolve().name
     if kind == "euroc":

@@ -73,6 +73,8 @@ class SLAMTrajectory:
     num_points: int = 0
     loops: list = field(default_factory=list)  # (frame index, loop frame index) of each closed loop
     merges: list = field(default_factory=list)  # (frame index, frame index in the other map) of each map merge
+    bridges: list = field(default_factory=list)  # (frame index, last tracked frame index) of each loss bridged by
+    # two-view geometry (a weak link, in the same map)
     map_frames: list = field(default_factory=list)  # frames with a pose in each final map, largest first
     initialized_at: int | None = None  # index of the frame at which the first map was initialised
 
@@ -211,7 +213,8 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
         timestamps=np.array([r.timestamp for r in records], np.float64), poses=poses,
         frame_indices=np.array([r.index for r in records], int), num_frames=n, timings=timings,
         num_keyframes=len(final.keyframes), num_points=len(final.points), loops=list(loop_closer.loops),
-        merges=list(loop_closer.merges), map_frames=map_frames, initialized_at=initialized_at,
+        merges=list(loop_closer.merges), bridges=list(tracker.bridges), map_frames=map_frames,
+        initialized_at=initialized_at,
     )
 
 

@@ -58,7 +58,8 @@ class TrackingConfig:
     stereo_close_baselines: float = 40.0  # stereo points closer than this many baselines count as "close"
     local_keyframes: int = 20
     reloc_candidates: int = 5
-    lost_frames: int = 3  # failed relocalisations before a new map is started
+    lost_frames: int = 3  # failed relocalisations (and bridges) before a new map is started
+    bridge: bool = True  # lost: the motion from the last tracked frame by two-view geometry, in the same map
     local_map_fallback: bool = True  # last fallback: the local map by descriptor + PnP RANSAC
     last_frame_fallback: bool = True  # first fallback: the last frame's points by descriptor (fast turns)
 
@@ -88,6 +89,9 @@ class Tracker:
         self.last_ref: tuple[KeyFrame, np.ndarray, float] | None = None  # (reference kf, T_last_ref, its scale)
         self.velocity: np.ndarray | None = None  # in the scale of last_ref
         self.lost_count = 0
+        self.last_step = 0.0  # length of the last frame-to-frame step (a bridge's scale when no point is shared)
+        self.bridges: list[tuple[int, int]] = []  # (frame index, bridged-from frame index): the weak links
+        self.bridge_from: Frame | None = None  # the last tracked frame of the active map
         self.lost_map: Map | None = None  # the map tracking was lost in, while a new one initialises
         self.reference: KeyFrame | None = None
         self.last_kf_index = -10**9
@@ -126,22 +130,95 @@ class Tracker:
                               int(np.count_nonzero(frame.points >= 0) - frame.outliers.sum()))
             elif self.state == "ok":
                 log.debug("Frame %d: frame-to-frame tracking failed.", frame.index)
-            if not ok:
+            bridged = not ok and self._bridge(frame)
+            if not ok and not bridged:
                 self._lost(frame)
                 return False
             self.state, self.lost_count = "ok", 0
             if self.last is not None and self.last.T_cw is not None:
                 self.velocity = frame.T_cw @ inverse_pose(self.last.T_cw)
+                self.last_step = float(np.linalg.norm(self.velocity[:3, 3]))
             self._drop_outliers(frame)
-            if self._need_keyframe(frame):
+            if not bridged and self._need_keyframe(frame):
                 self._insert_keyframe(frame)
                 # inline mapping may have moved the new keyframe (local BA, a loop correction, a map merge): the
                 # frame is that keyframe, so it takes its pose (a stale one left a 1.3 m spike at every loop)
                 frame.T_cw = self.reference.pose().copy()
-            self.last = frame
+            self.last = self.bridge_from = frame
             self.last_ref = (self.reference, frame.T_cw @ inverse_pose(self.reference.T_cw),
                              self.reference.current_scale())
             return True
+
+    # --- bridging a loss ---------------------------------------------------------------------------------------
+    def _bridge(self, frame: Frame) -> bool:
+        """Tracking and relocalisation failed: pose `frame` from the last tracked frame by two-view geometry (E or H,
+        chosen as in initialisation) and keep both as keyframes of the same map, with points triangulated between
+        them. Scale: the depths of the map points seen in both views, else the last step's length. A weak link:
+        local BA, later loops and merges refine it. False (a lost frame) when two-view geometry fails too."""
+        prev = self.bridge_from
+        if not self.cfg.bridge or self.rig is not None or prev is None or self.last_ref is None:
+            return False
+        ref, T_lr, scale = self.last_ref
+        if ref.map.resolved() is not self.map:
+            return False
+        prev.T_cw = scale_translation(T_lr, ref.current_scale() / scale) @ ref.pose()  # after BA, loops, merges
+        prev.points = self.store.resolve(prev.points)
+        best = (np.zeros(0, int), np.zeros(0, int))
+        for match in self._matchers():
+            ia, ib = match(prev, np.arange(len(prev)), frame)
+            if len(ia) > len(best[0]):
+                best = (ia, ib)
+            if len(best[0]) >= self.cfg.init_min_matches:
+                break
+        ia, ib = best
+        c = self.cfg
+        prior = self.velocity[:3, :3] if self.velocity is not None and self.last is prev else None
+        out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K, self.seed + frame.index,
+                                      c.init_min_parallax_deg, c.min_inliers,
+                                      sigma=self.sigma if self.binary else c.init_sigma_float, prior_R=prior)
+        if out is None:
+            log.debug("Frame %d: no bridge from frame %d (%d matches, two-view geometry failed).", frame.index,
+                      prev.index, len(ia))
+            return False
+        T21, X, good, model = out  # X in prev's camera frame, unit median depth
+        ia, ib, X = ia[good], ib[good], X[good]
+        shared = prev.points[ia]
+        has = (shared >= 0) & ~self.store.bad[np.maximum(shared, 0)]
+        if np.count_nonzero(has) >= 10:  # the map's depths of the points seen in both views fix the scale
+            z_map = transform(prev.T_cw, self.store.position[shared[has]])[:, 2]
+            s = float(np.median(z_map / X[has, 2]))
+        else:
+            s = self.last_step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
+        if not (np.isfinite(s) and s > 0):
+            return False
+        kf_prev = ref if ref.index == prev.index and not ref.is_bad else None
+        if kf_prev is None:
+            kf_prev = self.map.new_keyframe(prev)
+            self.keyframes.insert_keyframe(kf_prev)  # mapped (inline, or queued) before the bridged keyframe
+        frame.T_cw = scale_translation(T21, s) @ kf_prev.pose()
+        frame.clear_points()
+        frame.outliers[:] = False
+        frame.points[ib[has]] = shared[has]
+        T_wp = inverse_pose(kf_prev.pose())
+        new = []
+        for a, b, x in zip(ia[~has], ib[~has], X[~has], strict=True):
+            if kf_prev.points[a] >= 0:
+                continue
+            j = self.map.new_point(T_wp[:3, :3] @ (s * x) + T_wp[:3, 3], frame.descriptors[b], kf_prev)
+            self.store.add_observation(j, kf_prev, int(a))
+            frame.points[b] = j
+            new.append(j)
+        update_normals(self.store, new)
+        kf = self.map.new_keyframe(frame)
+        self.reference = kf
+        self.last_kf_index = frame.index
+        self.keyframes.insert_keyframe(kf)
+        frame.T_cw = kf.pose().copy()
+        frame.points = self.store.resolve(kf.points.copy())
+        self.bridges.append((frame.index, prev.index))
+        log.info("Frame %d: tracking lost; bridged from frame %d by two-view geometry (%s, %d points, %s scale).",
+                 frame.index, prev.index, model, len(ia), "map" if np.count_nonzero(has) >= 10 else "step")
+        return True
 
     def _lost(self, frame: Frame) -> None:
         """One more failed frame; after `lost_frames` of them, a new map (the old one stays in the Atlas)."""
@@ -157,6 +234,7 @@ class Tracker:
                  self.lost_count)
         self.lost_map = self.map
         self.atlas.new_map()
+        self.bridge_from = None
         self.state, self.lost_count, self.init_frame, self.init_pending = "init", 0, None, []
         self.last_ref = self.reference = None
         if self.rig is None and len(frame) >= self.cfg.init_min_matches:
@@ -282,7 +360,7 @@ class Tracker:
 
     def _start(self, frame: Frame, kf: KeyFrame, kfs: list[KeyFrame]) -> None:
         self.reference = kf
-        self.last = frame
+        self.last = self.bridge_from = frame
         self.last_ref = (kf, frame.T_cw @ inverse_pose(kf.T_cw), kf.current_scale())
         self.last_kf_index = frame.index
         self.velocity = None
