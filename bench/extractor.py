@@ -1,6 +1,7 @@
 """Extraction latency at 480x640 on 2 threads: UWNet vs its backbone, SuperPoint, XFeat, ALIKED, ORB; DCN fast path.
 
     nice .venv/bin/python bench/extractor.py [--reps 15] [--threads 2] [--weights PATH] [--working-sizes 640,768]
+        [--extra-weights ruslam/weights/uwnet_xfeat_s4.pt]
     nice .venv/bin/python bench/extractor.py --orb [--frames 10] [--tum DIR]   # ORB-SLAM's ORB vs plain cv2 ORB only
 
 All methods run round-robin on the same image (so machine load hits them alike) and the median is reported with
@@ -103,6 +104,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--weights", default=None, help="UWNet weights (default: shipped file, else random init)")
     parser.add_argument("--working-sizes", default="", help="UWNet also at these longer sides (comma separated)")
+    parser.add_argument("--extra-weights", default="", help="more UWNet weights files in the same table (comma "
+                        "separated), e.g. ruslam/weights/uwnet_xfeat_s4.pt")
     parser.add_argument("--orb", action="store_true", help="only ORB-SLAM's ORB vs plain ORB on hard frames")
     parser.add_argument("--frames", type=int, default=10, help="frames per set for --orb")
     parser.add_argument("--tum", default=None, help="a TUM RGB-D folder added to the --orb sets")
@@ -154,6 +157,9 @@ def main() -> None:
     for size in filter(None, args.working_sizes.split(",")):  # the accuracy/time trade (docs/training.md)
         sized = UWNetExtractor.from_file(weights, resize_min=int(size), resize_max=int(size))
         fns[f"UWNet extract at working size {size}"] = lambda sized=sized: sized.extract(image)
+    for path in filter(None, args.extra_weights.split(",")):
+        extra = UWNetExtractor.from_file(path)
+        fns[f"UWNet extract, {Path(path).name}"] = lambda extra=extra: extra.extract(image)
     if aliked is not None:
         fns["ALIKED-n16rot extract (2k)"] = lambda: aliked.extract(image)
         fns["ALIKED-t16 extract (2k)"] = lambda: aliked_tiny.extract(image)
