@@ -192,7 +192,7 @@ def test_robustness_matrix_reports_tracking_after_init_maps_and_ape_share(tmp_pa
     cfg = compose("evaluate", ["task=slam", "dataset=robustness", "dataset.split=dev", f"out_dir={tmp_path}",
                                "extractors=[orb]", "dataset.select=[turn9]", f"dataset.reader.cache_dir={tmp_path}",
                                "dataset.reader.width=48", "dataset.reader.height=36",
-                               "+dataset.splits.dev.turn9.frames=16"])
+                               "+dataset.splits.dev.turn9.frames=16", "task.two_view_vo=[]"])
     assert cfg.slam.max_frames is None  # the dataset runs every frame (the embedded sweep's cap is its own)
     result = run(cfg, slam_run=late_start)["results"][0]
     assert result["ok"] and result["frames"] == 16 and result["tracked"] == pytest.approx(14 / 16)

@@ -28,6 +28,7 @@ from ruslam.atomic_files import atomic_path, atomic_write
 from ruslam.config_checks import SLAM_METRICS as METRICS
 from ruslam.errors import InputError, MissingInput
 from ruslam.eval.trajectory import evaluate_trajectory
+from ruslam.slam import two_view_odometry
 from ruslam.slam.readers import Trajectory, write_tum_trajectory
 
 log = logging.getLogger(__name__)
@@ -328,16 +329,25 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
         sequences = {str(s): sequences[str(s)] for s in select}
     opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
     extractors, skipped = resolve_extractors(list(cfg.extractors), task, dataset.get("extractor_options"))
-    methods = list(extractors)
+    # the chained two-view odometry baseline, with the extractors named in task.two_view_vo
+    vo_names = [str(n) for n in task.get("two_view_vo") or []]
+    vo_extractors, vo_skipped = resolve_extractors(vo_names, task, dataset.get("extractor_options"))
+    skipped.update(vo_skipped)
+    runners = {m: (e, slam_run, m) for m, e in extractors.items()}
+    runners.update({f"vo_{m}": (e, two_view_odometry.run, m)
+                    for m, e in vo_extractors.items()})
+    for m in vo_extractors:
+        labels.setdefault(f"vo_{m}", f"Two-view VO ({labels.get(m, m)})")
+    methods = list(runners)
     rule = OmegaConf.merge(task.failure, dataset.get("failure") or {})  # a dataset may rescale the bound
     label = dataset_label(dataset, opened)
     results, curves = [], {}
     for name, seq in opened.items():
         seq.name = name
-        for method, extractor in extractors.items():
-            slam_cfg = slam_config_for(cfg, method)
+        for method, (extractor, runner, settings) in runners.items():
+            slam_cfg = slam_config_for(cfg, settings)
             try:
-                estimate = slam_run(seq, extractor, slam_cfg)
+                estimate = runner(seq, extractor, slam_cfg)
             except RuntimeError as exc:  # a failed solve (gtsam raises RuntimeError) or mapping thread: an x cell;
                 # programming errors (TypeError, KeyError, ValueError...) propagate rather than hide as a failed run
                 log.exception("SLAM crashed on %s with %s", name, method)

@@ -78,9 +78,11 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
 
 
 def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_px=2.0, rotation_ratio=0.5,
-                 prior_R=None):
-    """Pick the (R, t) that triangulates the most good points; refuse when two hypotheses are close and the
-    rotation prior (`prior_R`, default none: identity) does not clearly prefer one."""
+                 prior_R=None, step=False):
+    """Pick the (R, t) that triangulates the most good points; when two hypotheses are close, the one nearer the
+    rotation prior (`prior_R`, default none: identity), refused unless clearly nearer for a map's first points.
+    The parallax tested is the 50th smallest for a map's first points, the median for a `step` (forward motion
+    leaves the points near the focus of expansion without any)."""
     T1 = np.eye(4)
     results = []
     for R, t in candidates:
@@ -90,7 +92,8 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
         r1, r2 = X, X - inverse_pose(T2)[:3, 3]  # camera 1 sits at the origin
         cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
         parallax = np.rad2deg(np.arccos(np.clip(np.sort(cos[good])[::-1], -1, 1)))
-        par = parallax[min(49, len(parallax) - 1)] if len(parallax) else 0.0  # ORB: 50th smallest parallax
+        rank = len(parallax) // 2 if step else min(49, len(parallax) - 1)
+        par = parallax[rank] if len(parallax) else 0.0
         results.append((int(good.sum()), T2, X, good, par))
     results.sort(key=lambda r: -r[0])
     if results[0][0] < min_points:
@@ -106,7 +109,7 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
             return _rotation_deg(pose_matrix(r[1][:3, :3] @ prior.T, np.zeros(3)))
 
         close.sort(key=off_prior)
-        if off_prior(close[0]) > rotation_ratio * off_prior(close[1]):
+        if not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1]):
             return None
     n_best, T2, X, good, par = close[0]
     if n_best < min_points or par < min_parallax_deg:
@@ -121,6 +124,7 @@ def _rotation_deg(T: np.ndarray) -> float:
 def two_view_initialization(
     x1: np.ndarray, x2: np.ndarray, K: np.ndarray, seed: int = 0, min_parallax_deg: float = 1.0,
     min_points: int = 50, homography_ratio: float = 0.40, sigma: float = 1.0, prior_R: np.ndarray | None = None,
+    step: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
     """Monocular map initialisation from matches x1 <-> x2 (ORB-SLAM: score H and F, keep the better model).
 
@@ -128,7 +132,9 @@ def two_view_initialization(
     scaled to unit median depth in camera 1, or None when the geometry is not trustworthy (too little parallax,
     ambiguous solutions, too few points). `sigma` is the keypoint noise in px: models are scored against it, so a
     learned extractor's noisier keypoints do not make F (degenerate on a flat seafloor) look better than H.
-    `prior_R`: the expected rotation of camera 2 relative to camera 1 (a motion model), None for no rotation.
+    `prior_R`: the expected rotation of camera 2 relative to camera 1 (a motion model), None for no rotation;
+    `step`: a frame-to-frame step (bridge, odometry) rather than a map's first points: the median parallax is
+    tested, and of two close hypotheses the one nearer the prior is taken.
     """
     if len(x1) < max(min_points, 8):
         return None
@@ -151,7 +157,8 @@ def two_view_initialization(
         E = K.T @ F[:3] @ K
         R1, R2, t = cv2.decomposeEssentialMat(E)
         candidates = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
-    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma, prior_R=prior_R)
+    best = _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma, prior_R=prior_R,
+                        step=step)
     if best is None:
         return None
     T2, X, good = best
@@ -162,6 +169,13 @@ def two_view_initialization(
     T2 = T2.copy()
     T2[:3, 3] /= median_depth
     return T2, X, good, model
+
+
+def step_min_parallax_deg(K: np.ndarray, sigma: float, depth_error: float = 0.5) -> float:
+    """The parallax (deg) at which a point's depth is known to `depth_error` (relative) from keypoints with `sigma`
+    px of noise. A frame-to-frame step (bridge, odometry) needs no more at its median point: its scale is a median
+    over tens of points, whose error is several times smaller."""
+    return float(np.degrees(sigma / (depth_error * K[0, 0])))
 
 
 # --- absolute pose -----------------------------------------------------------------------------------------------

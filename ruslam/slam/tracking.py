@@ -23,7 +23,7 @@ import numpy as np
 
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
-from ruslam.slam.geometry import CHI2_2DOF, solve_pnp_ransac, two_view_initialization
+from ruslam.slam.geometry import CHI2_2DOF, solve_pnp_ransac, step_min_parallax_deg, two_view_initialization
 from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
@@ -89,7 +89,7 @@ class Tracker:
         self.last_ref: tuple[KeyFrame, np.ndarray, float] | None = None  # (reference kf, T_last_ref, its scale)
         self.velocity: np.ndarray | None = None  # in the scale of last_ref
         self.lost_count = 0
-        self.last_step = 0.0  # length of the last frame-to-frame step (a bridge's scale when no point is shared)
+        self.speed = 0.0  # map units per second over the last step (a bridge's scale when no point is shared)
         self.bridges: list[tuple[int, int]] = []  # (frame index, bridged-from frame index): the weak links
         self.bridge_from: Frame | None = None  # the last tracked frame of the active map
         self.lost_map: Map | None = None  # the map tracking was lost in, while a new one initialises
@@ -137,7 +137,8 @@ class Tracker:
             self.state, self.lost_count = "ok", 0
             if self.last is not None and self.last.T_cw is not None:
                 self.velocity = frame.T_cw @ inverse_pose(self.last.T_cw)
-                self.last_step = float(np.linalg.norm(self.velocity[:3, 3]))
+                dt = frame.timestamp - self.last.timestamp
+                self.speed = float(np.linalg.norm(self.velocity[:3, 3])) / dt if dt > 0 else self.speed
             self._drop_outliers(frame)
             if not bridged and self._need_keyframe(frame):
                 self._insert_keyframe(frame)
@@ -153,7 +154,7 @@ class Tracker:
     def _bridge(self, frame: Frame) -> bool:
         """Tracking and relocalisation failed: pose `frame` from the last tracked frame by two-view geometry (E or H,
         chosen as in initialisation) and keep both as keyframes of the same map, with points triangulated between
-        them. Scale: the depths of the map points seen in both views, else the last step's length. A weak link:
+        them. Scale: the depths of the map points seen in both views, else the last speed. A weak link:
         local BA, later loops and merges refine it. False (a lost frame) when two-view geometry fails too."""
         prev = self.bridge_from
         if not self.cfg.bridge or self.rig is not None or prev is None or self.last_ref is None:
@@ -174,8 +175,9 @@ class Tracker:
         c = self.cfg
         prior = self.velocity[:3, :3] if self.velocity is not None and self.last is prev else None
         out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K, self.seed + frame.index,
-                                      c.init_min_parallax_deg, c.min_inliers,
-                                      sigma=self.sigma if self.binary else c.init_sigma_float, prior_R=prior)
+                                      step_min_parallax_deg(frame.K, self.sigma), c.min_inliers,
+                                      sigma=self.sigma if self.binary else c.init_sigma_float, prior_R=prior,
+                                      step=True)
         if out is None:
             log.debug("Frame %d: no bridge from frame %d (%d matches, two-view geometry failed).", frame.index,
                       prev.index, len(ia))
@@ -188,7 +190,8 @@ class Tracker:
             z_map = transform(prev.T_cw, self.store.position[shared[has]])[:, 2]
             s = float(np.median(z_map / X[has, 2]))
         else:
-            s = self.last_step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
+            step = self.speed * (frame.timestamp - prev.timestamp)  # constant speed across dropped frames
+            s = step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
         if not (np.isfinite(s) and s > 0):
             return False
         kf_prev = ref if ref.index == prev.index and not ref.is_bad else None

@@ -1,0 +1,90 @@
+"""Chained two-view visual odometry: the baseline a monocular SLAM is compared against.
+
+Each frame is matched to the last posed one (kNN + ratio test, mutual), its relative pose comes from E or H (the
+model chosen as in initialisation, `geometry.two_view_initialization`, the last rotation as prior), and the length
+of each step is carried over by the points it shares with the step before (their depths in the common frame). No
+map, no bundle adjustment, no loop closure. A frame whose geometry fails is skipped; after `tracking.lost_frames`
+skipped frames, or when a frame no longer overlaps the last posed one, a new segment starts (reported like a new
+map).
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import closing
+
+import numpy as np
+
+from ruslam.slam.feature_matching import match_knn_ratio
+from ruslam.slam.geometry import step_min_parallax_deg, two_view_initialization
+from ruslam.slam.map import inverse_pose, scale_translation, transform
+from ruslam.slam.system import SLAMTrajectory, _frames, as_config
+
+
+def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
+    """Poses of `sequence` by chained two-view geometry, with the SLAM's extraction settings (`cfg`: SLAMConfig)."""
+    cfg = as_config(cfg)
+    t = cfg.tracking
+    binary = bool(getattr(extractor, "binary", False))
+    max_distance = t.max_distance_binary if binary else t.max_distance_float
+    sigma = t.sigma_binary if binary else t.init_sigma_float
+    n = len(sequence) if cfg.max_frames is None else min(len(sequence), cfg.max_frames)
+    timings = np.zeros(n)
+    posed: list[tuple[int, float, np.ndarray]] = []  # (frame index, timestamp, T_cw)
+    segments: list[int] = []
+    last = None  # (frame, T_cw, {keypoint index: depth in that frame}, rotation of the last step, speed)
+    with closing(_frames(n, sequence, extractor, False, cfg)) as frames:
+        for i in range(n):
+            start = time.perf_counter()
+            frame = next(frames)
+            if frame is not None:
+                last = _step(last, frame, cfg.seed, binary, max_distance, t, sigma, posed, segments)
+            timings[i] = time.perf_counter() - start
+    poses = np.array([inverse_pose(T) for _, _, T in posed]).reshape(-1, 4, 4)
+    # the reported trajectory is the longest segment, as the SLAM reports its largest map
+    ends = np.cumsum(segments)
+    k = int(np.argmax(segments)) if segments else 0
+    sel = slice(ends[k] - segments[k], ends[k]) if segments else slice(0, 0)
+    return SLAMTrajectory(
+        timestamps=np.array([ts for _, ts, _ in posed[sel]], np.float64), poses=poses[sel],
+        frame_indices=np.array([i for i, _, _ in posed[sel]], int), num_frames=n, timings=timings,
+        map_frames=sorted(segments, reverse=True), initialized_at=posed[0][0] if posed else None,
+    )
+
+
+def _step(last, frame, seed, binary, max_distance, t, sigma, posed, segments):
+    """Pose `frame` from `last`; returns the new `last` (unchanged when the frame is skipped)."""
+    if last is None:
+        return _restart(frame, posed, segments)
+    prev, T_prev, depth_prev, R_prior, speed = last
+    dt = frame.timestamp - prev.timestamp
+    a, b = match_knn_ratio(prev.descriptors, frame.descriptors, binary, max_distance, 1.0, mutual=True)
+    if len(a) < t.min_inliers // 2:  # no overlap left: a new segment
+        return _restart(frame, posed, segments)
+    out = two_view_initialization(prev.keypoints[a], frame.keypoints[b], frame.K, seed + frame.index,
+                                  step_min_parallax_deg(frame.K, sigma), t.min_inliers, sigma=sigma, prior_R=R_prior,
+                                  step=True)
+    if out is None:  # skipped; after `lost_frames` frames without a pose, a new segment
+        return _restart(frame, posed, segments) if frame.index - prev.index > t.lost_frames else last
+    T21, X, good, _ = out
+    a, b, X = a[good], b[good], X[good]
+    known = np.array([depth_prev.get(int(k), np.nan) for k in a])
+    shared = np.isfinite(known)
+    if not depth_prev:  # the first step of a segment: unit median depth
+        scale = 1.0
+    elif np.count_nonzero(shared) >= 5:
+        scale = float(np.median(known[shared] / X[shared, 2]))
+    else:
+        scale = speed * dt / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)  # constant speed
+    T21 = scale_translation(T21, scale)
+    T_cw = T21 @ T_prev
+    posed.append((frame.index, frame.timestamp, T_cw))
+    segments[-1] += 1
+    depth = dict(zip(b.tolist(), transform(T21, scale * X)[:, 2].tolist(), strict=True))
+    return frame, T_cw, depth, T21[:3, :3], float(np.linalg.norm(T21[:3, 3])) / max(dt, 1e-9)
+
+
+def _restart(frame, posed, segments):
+    posed.append((frame.index, frame.timestamp, np.eye(4)))
+    segments.append(1)
+    return frame, np.eye(4), {}, None, 0.0
