@@ -155,7 +155,7 @@ def main() -> None:
         "ORB-2000 detect+compute (plain cv2)": lambda: orb_plain.extract(image),
     }
     for size in filter(None, args.working_sizes.split(",")):  # the accuracy/time trade (docs/training.md)
-        sized = UWNetExtractor.from_file(weights, resize_min=int(size), resize_max=int(size))
+        sized = UWNetExtractor.from_file(weights, min_pixels=None, resize_min=int(size), resize_max=int(size))
         fns[f"UWNet extract at working size {size}"] = lambda sized=sized: sized.extract(image)
     for path in filter(None, args.extra_weights.split(",")):
         extra = UWNetExtractor.from_file(path)

@@ -39,7 +39,7 @@ def test_export_is_fp16_weights_only_and_round_trips(weights):
 
 def test_extract_contract_and_resize_mapping(weights):
     path, _ = weights
-    ext = load_extractor(path, max_keypoints=50, detection_threshold=0.0, resize_min=None, resize_max=None)
+    ext = load_extractor(path, max_keypoints=50, detection_threshold=0.0, min_pixels=None, resize_max=None)
     img = (np.random.default_rng(0).random((96, 128, 3)) * 255).astype(np.uint8)
     out = ext.extract(img)
     n = len(out["keypoints"])
@@ -52,8 +52,8 @@ def test_extract_contract_and_resize_mapping(weights):
     assert ext.extract(img.mean(axis=2).astype(np.float32) / 255)["descriptors"].shape[1] == 64
     big = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)
     opts = {"max_keypoints": 0, "detection_threshold": 0.002, "subpixel_radius": 0}  # integer pixels: exact
-    small = UWNetExtractor.from_file(path, resize_min=None, resize_max=None, **opts).extract(img)
-    big_kp = UWNetExtractor.from_file(path, resize_min=None, resize_max=128, **opts).extract(big)
+    small = UWNetExtractor.from_file(path, min_pixels=None, resize_max=None, **opts).extract(img)
+    big_kp = UWNetExtractor.from_file(path, min_pixels=None, resize_max=128, **opts).extract(big)
     expected = (small["keypoints"] + 0.5) * 2 - 0.5
     assert len(expected) > 5
     np.testing.assert_allclose(np.unique(big_kp["keypoints"], axis=0), np.unique(expected, axis=0), atol=1e-4)
@@ -131,14 +131,26 @@ def test_resize_min_equals_upsampling_by_hand(weights):
     up = torch.nn.functional.interpolate(torch.from_numpy(rgb).permute(2, 0, 1)[None], size=(192, 256),
                                          mode="bilinear", align_corners=False)[0].permute(1, 2, 0).numpy()
     opts = {"max_keypoints": 0, "detection_threshold": 0.002, "subpixel_radius": 0}
-    small = UWNetExtractor.from_file(path, resize_min=256, resize_max=None, **opts).extract(rgb)
-    by_hand = UWNetExtractor.from_file(path, resize_min=None, resize_max=None, **opts).extract(np.ascontiguousarray(up))
-    native = UWNetExtractor.from_file(path, resize_min=None, resize_max=None, **opts).extract(rgb)
+    small = UWNetExtractor.from_file(path, min_pixels=None, resize_min=256, **opts).extract(rgb)
+    by_hand = UWNetExtractor.from_file(path, min_pixels=None, resize_max=None, **opts).extract(np.ascontiguousarray(up))
+    native = UWNetExtractor.from_file(path, min_pixels=None, resize_max=None, **opts).extract(rgb)
     assert len(small["keypoints"]) == len(by_hand["keypoints"]) > len(native["keypoints"]) > 5  # finer cells
     a, b = np.lexsort(small["keypoints"].T), np.lexsort(by_hand["keypoints"].T)  # equal scores: any order
     np.testing.assert_allclose(small["keypoints"][a], (by_hand["keypoints"][b] + 0.5) / 2 - 0.5, atol=1e-4)
     np.testing.assert_allclose(small["descriptors"][a], by_hand["descriptors"][b], atol=1e-4)
     assert small["keypoints"].max(0).tolist() < [128, 96] and small["keypoints"].min() > -0.5
+
+
+def test_working_size_is_an_area_that_never_shrinks_a_frame(weights):
+    """min_pixels: a 640x480 frame runs at 672x504's area, a wide 1240x376 frame (more pixels than that) at its own
+    resolution instead of being shrunk to a 672 px longer side, a small 320x240 one upsampled with its aspect."""
+    ext = UWNetExtractor.from_file(weights[0])
+    assert ext._input_size(480, 640) == (504, 672)
+    assert ext._input_size(376, 1240) == (376, 1240)
+    h, w = ext._input_size(240, 320)
+    assert (h, w) == (504, 672) and h * w >= 0.97 * 672 * 504
+    with pytest.raises(ValueError, match="min_pixels"):
+        UWNetExtractor.from_file(weights[0], min_pixels=-1)
 
 
 @pytest.mark.parametrize("key", ["resize_min", "resize_max"])

@@ -1,7 +1,8 @@
 """`UWNetExtractor`: a trained UWNet behind the project's extractor contract (`load_extractor("uwnet_xfeat")`).
 
-The image is resized so its longer side is at least ``resize_min`` and at most ``resize_max``, and both sides are
-multiples of 8 (the cell layout); keypoints are mapped back to input pixels with the pixel-centre convention
+The working size: an image with fewer than ``min_pixels`` pixels is upsampled to that area (aspect kept), a larger
+one runs at its own resolution (``resize_min`` / ``resize_max`` bound the longer side where set); both sides are
+then multiples of 8 (the cell layout). Keypoints are mapped back to input pixels with the pixel-centre convention
 x = (x' + 0.5) * s - 0.5.
 """
 
@@ -13,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ruslam.errors import InputError
 from ruslam.models.export import load_uwnet
 from ruslam.models.extractor import (
     Extractor,
@@ -34,11 +36,13 @@ class UWNetExtractor(Extractor):
         "nms_radius": 2,  # XFeat's 5x5 window, as the teacher; a 9x9 max-pool at 480x640 costs ~1/3 of the backbone
         "detection_threshold": 0.005,
         "border": 4,
-        # The working size (longer side): smaller images are upsampled to resize_min, larger ones downsampled to
-        # resize_max (None: no bound). 8 px cells are coarse; 672 is the largest size within 1.3x XFeat's time
-        # at 480x640, and each step up buys matching precision for time (docs/training.md, "Working size").
-        "resize_min": 672,
-        "resize_max": 672,
+        # The working size as a pixel area: 8 px cells are coarse, so smaller images are upsampled to 672x504's
+        # area (the largest within 1.3x XFeat's time at 640x480; each step up buys matching precision for time,
+        # docs/training.md, "Working size"); larger frames keep every pixel (a wide 1241x376 frame is not shrunk
+        # to a 672 px side). resize_min / resize_max: optional bounds on the longer side (None: none).
+        "min_pixels": 672 * 504,
+        "resize_min": None,
+        "resize_max": None,
         "subpixel_radius": 4,  # keypoints at the heat's centre in their 9x9 window (0: integer pixels)
         "device": "cpu",
     }
@@ -49,6 +53,9 @@ class UWNetExtractor(Extractor):
         super().__init__(**conf)
         for key in ("resize_min", "resize_max"):
             check_longer_side("UWNet", key, self.conf[key])
+        area = self.conf["min_pixels"]
+        if area is not None and not (isinstance(area, int | float) and 256 <= area <= 4096**2):
+            raise InputError(f"UWNet min_pixels must be null or a pixel area (256-16777216), got {area!r}.")
         weights = self.conf["weights"] or self.default_weights
         self.device = torch.device(self.conf["device"])
         self.net = load_uwnet(weights, descriptor_dim=self.conf["descriptor_dim"]).to(self.device)
@@ -64,6 +71,8 @@ class UWNetExtractor(Extractor):
             scale = self.conf["resize_max"] / max(h, w)
         elif self.conf["resize_min"] and max(h, w) < self.conf["resize_min"]:
             scale = self.conf["resize_min"] / max(h, w)
+        elif self.conf["min_pixels"] and h * w < self.conf["min_pixels"]:
+            scale = float(np.sqrt(self.conf["min_pixels"] / (h * w)))
         return max(STRIDE, round(h * scale / STRIDE) * STRIDE), max(STRIDE, round(w * scale / STRIDE) * STRIDE)
 
     @torch.inference_mode()
@@ -105,4 +114,4 @@ class UWNetMobileNetExtractor(UWNetExtractor):
     (`load_extractor("uwnet_mobilenet")`)."""
 
     default_weights = WEIGHTS_DIR / "uwnet_mobilenet.pt"
-    default_conf = {**UWNetExtractor.default_conf, "resize_min": None, "resize_max": 640}  # as it was measured
+    default_conf = {**UWNetExtractor.default_conf, "min_pixels": None, "resize_max": 640}  # as it was measured
