@@ -57,6 +57,12 @@ def test_variant_renders_once_and_reads_back_with_its_ground_truth(tmp_path):
     again = robustness_sequence("v", cache_dir=tmp_path, fps=20.0, water=None, **TINY)
     assert folder.stat().st_mtime_ns == stamp and np.array_equal(again.load(3)[0], seq.load(3)[0])
     assert len(list(tmp_path.iterdir())) == 1
+    gaps = robustness_sequence("v", cache_dir=tmp_path, fps=20.0, water=None, dropped=[[2, 4], [6, 7]], **TINY)
+    assert len(gaps) == len(seq) - 3 and len(list(tmp_path.iterdir())) == 1  # the same rendering, frames left out
+    assert np.allclose(gaps.timestamps[:4], seq.timestamps[[0, 1, 4, 5]])
+    assert np.allclose(gaps.groundtruth.poses, seq.groundtruth.poses)  # the ground truth stays whole
+    with pytest.raises(ValueError, match="dropped frames"):
+        robustness_sequence("v", cache_dir=tmp_path, fps=20.0, water=None, dropped=[[0, 10**4]], **TINY)
 
 
 def test_texture_and_water_knobs_change_the_pixels_the_right_way(tmp_path):

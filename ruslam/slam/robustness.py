@@ -242,8 +242,10 @@ def default_cache_dir() -> Path:
 
 
 def robustness_sequence(name: str = "survey", cache_dir: str | Path | None = None, progress: bool = True,
-                        **knobs) -> Sequence:
-    """The sequence of one variant (``knobs``: fields of `SurveyConfig`), rendered on first use."""
+                        dropped=(), **knobs) -> Sequence:
+    """The sequence of one variant (``knobs``: fields of `SurveyConfig`), rendered on first use. ``dropped``:
+    [start, stop) frame ranges left out (a camera that drops frames: the kept neighbours are far apart, the
+    ground truth stays whole)."""
     unknown = sorted(set(knobs) - set(SurveyConfig.__dataclass_fields__))
     if unknown:
         raise ValueError(f"Robustness variant {name!r}: unknown knob(s) {unknown}; expected fields of "
@@ -253,4 +255,14 @@ def robustness_sequence(name: str = "survey", cache_dir: str | Path | None = Non
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     root.mkdir(parents=True, exist_ok=True)
     folder = render_survey(cfg, root / f"{name}_{cfg.key()}", progress=progress)
-    return read_euroc(folder, stereo=cfg.stereo, name=name)
+    seq = read_euroc(folder, stereo=cfg.stereo, name=name)
+    drop = {i for start, stop in dropped for i in range(int(start), int(stop))}
+    if not drop:
+        return seq
+    if not drop < set(range(len(seq))):
+        raise ValueError(f"Robustness variant {name!r}: dropped frames {sorted(drop)} must lie within 0-{len(seq) - 1} "
+                         "and leave frames.")
+    keep = [i for i in range(len(seq)) if i not in drop]
+    return Sequence(name=name, cameras=seq.cameras, timestamps=seq.timestamps[keep],
+                    image_paths=[seq.image_paths[i] for i in keep], T_cam0_cam1=seq.T_cam0_cam1,
+                    groundtruth=seq.groundtruth)
