@@ -148,7 +148,7 @@ def test_retrieval_pairs_from_uwnets_global_descriptor(tmp_path):
         cv2.imwrite(str(root / f"s{scene}_0.png"), image[..., ::-1])
         cv2.imwrite(str(root / f"s{scene}_1.png"), np.roll(image, (6, 9), (0, 1))[..., ::-1])
     feats = tmp_path / "f.h5"
-    extract_features(root, feats, load_extractor("uwnet_xfeat", max_keypoints=200), progress=False)
+    extract_features(root, feats, load_extractor("uwnet_xfeat", max_keypoints=200, min_pixels=None), progress=False)
     pairs = make_pairs(list_images(root), retrieval=1, features_path=feats)
     assert sorted(pairs) == [("s0_0.png", "s0_1.png"), ("s1_0.png", "s1_1.png")]
     with pytest.raises(InputError, match="global descriptor"):
@@ -195,12 +195,12 @@ def test_bad_inputs_one_sentence_exit_2_no_output(case, tmp_path, capsys, image_
 def uwnet():
     from ruslam.models.uwnet_module import UWNetFeatures
 
-    return UWNetFeatures(max_keypoints=300)
+    return UWNetFeatures(max_keypoints=300, min_pixels=None)  # the images' own size (multiples of 8): fast
 
 
 def test_module_matches_the_extractor_and_is_differentiable(uwnet):
     image = textured()
-    ref = load_extractor("uwnet_xfeat", max_keypoints=300).extract(image)
+    ref = load_extractor("uwnet_xfeat", max_keypoints=300, min_pixels=None).extract(image)
     x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
     x = torch.cat([x, x.flip(-1)])
     uwnet.zero_grad()
@@ -222,7 +222,7 @@ def test_onnx_export_decodes_to_the_module_output(uwnet, tmp_path):
     ort = pytest.importorskip("onnxruntime")
     from ruslam.models.uwnet_module import decode_onnx, export_onnx
 
-    uwnet_native = type(uwnet)(resize=None, max_keypoints=300)
+    uwnet_native = uwnet
     path = export_onnx(uwnet_native, tmp_path / "uwnet.onnx", height=88, width=120)  # not multiples of 32
     x = torch.from_numpy(textured(88, 120)).permute(2, 0, 1)[None].float() / 255
     session = ort.InferenceSession(str(path))
@@ -243,6 +243,7 @@ def test_onnx_export_decodes_to_the_module_output(uwnet, tmp_path):
 # ------------------------------------------------------------------------------------------ docs/pipelines.md
 
 
+@pytest.mark.slow
 def test_docs_pipelines_examples_run(tmp_path, monkeypatch, capsys):
     """Every ```python block of docs/pipelines.md, in order, in one namespace, in a folder holding images/."""
     from ruslam.data.multiview import MultiViewConfig, render_multiview

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-VERSION = 1  # bump when rendering changes, so stale caches are regenerated
+VERSION = 2  # bump when rendering changes, so stale caches are regenerated
 
 
 @dataclass(frozen=True)
@@ -75,8 +75,9 @@ def survey_poses(cfg: MultiViewConfig) -> np.ndarray:
 
 
 def _stamps(n: int) -> list[int]:
-    # 1 Hz from t = 10 s, named <t_ns>.png as the image-folder sequences (same digit count: name order = time order)
-    return [1_000_000_000 * (i + 10) for i in range(n)]
+    # 1 Hz, named <t_ns>.png as the image-folder sequences (epoch-like stamps: same digit count, name order = time
+    # order, and large enough to read as nanoseconds)
+    return [1_600_000_000_000_000_000 + 1_000_000_000 * i for i in range(n)]
 
 
 def render_multiview(cfg: MultiViewConfig | None = None, cache_dir: str | Path | None = None,

@@ -14,9 +14,8 @@
   turns those arrays into the keypoints, scores and descriptors that `UWNetFeatures` gives for the same input.
 
 Conventions as everywhere in the project: images RGB (grey is replicated) in [0, 1]; keypoints (x, y) in pixels
-of the input image with pixel centres at integer coordinates. Images are resized so their longer side is
-``resize`` (rounded to multiples of 8; None: used as they are, cropped to multiples of 8 by the network), and
-keypoints mapped back with x = (x' + 0.5) * s - 0.5.
+of the input image with pixel centres at integer coordinates. Images are resized to `UWNetExtractor`'s working
+size (sides multiples of 8) and keypoints mapped back with x = (x' + 0.5) * s - 0.5.
 """
 
 from __future__ import annotations
@@ -31,32 +30,30 @@ from torch import nn
 from ruslam.atomic_files import atomic_path
 from ruslam.errors import InputError
 from ruslam.models.export import load_uwnet
-from ruslam.models.extractor import check_longer_side, decode_sparse
+from ruslam.models.extractor import Extractor, check_longer_side, decode_sparse
 from ruslam.models.uwnet_extractor import SHIPPED_WEIGHTS, STRIDE, UWNetExtractor
 
-DEFAULTS = {k: UWNetExtractor.default_conf[k]
-            for k in ("max_keypoints", "nms_radius", "detection_threshold", "border", "subpixel_radius")}
-
-
-def working_size(h: int, w: int, resize: int | None) -> tuple[int, int]:
-    """(h, w) with the longer side ``resize`` (None: unchanged), both rounded to multiples of 8."""
-    scale = 1.0 if not resize else resize / max(h, w)
-    return max(STRIDE, round(h * scale / STRIDE) * STRIDE), max(STRIDE, round(w * scale / STRIDE) * STRIDE)
+DECODE_KEYS = ("max_keypoints", "nms_radius", "detection_threshold", "border", "subpixel_radius")
+DEFAULTS = {k: UWNetExtractor.default_conf[k] for k in DECODE_KEYS}
 
 
 class UWNetFeatures(nn.Module):
-    """UWNet (shipped ``uwnet_xfeat`` weights by default, or a weights file) as a batched torch module."""
+    """UWNet (shipped ``uwnet_xfeat`` weights by default, or a weights file) as a batched torch module.
 
-    def __init__(self, weights: str | Path | None = None, resize: int | None = 672, **conf):
+    Options are `UWNetExtractor`'s (``max_keypoints``, ``detection_threshold``, ``nms_radius``, the working size
+    ``min_pixels`` / ``resize_min`` / ``resize_max``, ...), with the same defaults, so both give the same
+    keypoints for the same image; ``min_pixels=None`` runs at the images' own size."""
+
+    def __init__(self, weights: str | Path | None = None, **conf):
         super().__init__()
-        unknown = set(conf) - set(DEFAULTS)
-        if unknown:
-            raise InputError(f"UWNetFeatures got unknown option(s) {sorted(unknown)}; expected some of "
-                             f"{sorted(DEFAULTS)} besides weights and resize.")
-        check_longer_side("UWNetFeatures", "resize", resize)
-        self.conf = {**DEFAULTS, **conf}
-        self.resize = resize
-        self.net = load_uwnet(weights or SHIPPED_WEIGHTS)
+        if "device" in conf:
+            raise InputError("UWNetFeatures takes no device option: move the module with .to(device).")
+        self.sizing = UWNetExtractor.__new__(UWNetExtractor)  # its options and working size, without a second net
+        Extractor.__init__(self.sizing, **conf)
+        for key in ("resize_min", "resize_max"):
+            check_longer_side("UWNetFeatures", key, self.sizing.conf[key])
+        self.conf = {k: self.sizing.conf[k] for k in DECODE_KEYS}
+        self.net = load_uwnet(weights or SHIPPED_WEIGHTS, descriptor_dim=self.sizing.conf["descriptor_dim"])
 
     def _prepare(self, images: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
         if images.ndim == 3:
@@ -69,11 +66,9 @@ class UWNetFeatures(nn.Module):
         if images.shape[1] == 1:
             images = images.expand(-1, 3, -1, -1)
         h, w = images.shape[-2:]
-        nh, nw = working_size(h, w, self.resize) if self.resize else (h // STRIDE * STRIDE, w // STRIDE * STRIDE)
-        if self.resize and (nh, nw) != (h, w):
+        nh, nw = self.sizing._input_size(h, w)
+        if (nh, nw) != (h, w):
             images = F.interpolate(images, size=(nh, nw), mode="bilinear", align_corners=False, antialias=nh < h)
-        elif (nh, nw) != (h, w):
-            images = images[..., :nh, :nw]
         return images.clamp(0, 1), (h, w)
 
     def dense(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
