@@ -65,6 +65,23 @@ def test_variant_renders_once_and_reads_back_with_its_ground_truth(tmp_path):
         robustness_sequence("v", cache_dir=tmp_path, fps=20.0, water=None, dropped=[[0, 10**4]], **TINY)
 
 
+def test_lens_distortion_is_rendered_and_written_to_the_calibration(tmp_path):
+    """k1: every pixel is rendered along the ray that the distorted camera's model assigns it (projecting the ray
+    back lands on the pixel), and the calibration read back carries the coefficients the SLAM undistorts with."""
+    from ruslam.slam.synthetic_sequence import pixel_rays
+
+    cfg = SurveyConfig(k1=-0.3, width=64, height=48)
+    camera = cfg.camera()
+    rays = pixel_rays(camera).reshape(-1, 3)
+    u, v = np.meshgrid(np.arange(64), np.arange(48))
+    np.testing.assert_allclose(camera.project(rays), np.stack([u.ravel(), v.ravel()], 1), atol=1e-3)
+    corner = rays[0] / rays[0, 2]
+    assert np.hypot(*corner[:2]) > 1.05 * np.hypot(-camera.cx / camera.fx, -camera.cy / camera.fy)  # barrel
+    seq = robustness_sequence("lens", cache_dir=tmp_path, frames=2, k1=-0.3, **TINY)
+    np.testing.assert_allclose(seq.cameras[0].dist, [-0.3, 0.15, 0, 0])
+    assert SurveyConfig().key() != SurveyConfig(k1=-0.3).key()
+
+
 def test_texture_and_water_knobs_change_the_pixels_the_right_way(tmp_path):
     def contrast(**knobs):
         seq = robustness_sequence("c", cache_dir=tmp_path, frames=2, **{**TINY, **knobs})

@@ -61,6 +61,7 @@ class SurveyConfig:
     width: int = 320
     height: int = 240
     hfov_deg: float = 70.8  # horizontal field of view (the embedded sequence's 640 px at f = 450)
+    k1: float = 0.0  # radial lens distortion (k1 of radial-tangential, k2 = -k1 / 2: barrel for k1 < 0)
     stereo: bool = False
     baseline: float = 0.12  # metres, right camera along +x of the left one
     # seafloor
@@ -114,10 +115,12 @@ class SurveyConfig:
 
     def camera(self) -> Camera:
         f = float((self.width / 2) / np.tan(np.deg2rad(self.hfov_deg) / 2))
-        return Camera(self.width, self.height, f, f, (self.width - 1) / 2, (self.height - 1) / 2)
+        return Camera(self.width, self.height, f, f, (self.width - 1) / 2, (self.height - 1) / 2,
+                      dist=[self.k1, -self.k1 / 2, 0.0, 0.0])
 
     def key(self) -> str:
-        text = json.dumps({**asdict(self), "version": VERSION}, sort_keys=True)
+        knobs = {k: v for k, v in asdict(self).items() if not (k == "k1" and v == 0)}  # undistorted: keys as before
+        text = json.dumps({**knobs, "version": VERSION}, sort_keys=True)
         return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 

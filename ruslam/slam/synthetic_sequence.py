@@ -169,8 +169,12 @@ def circuit_poses(cfg: SeafloorConfig) -> np.ndarray:
 
 
 def pixel_rays(camera: Camera) -> np.ndarray:
-    """Unit viewing rays [H, W, 3] of every pixel in the camera frame (pinhole, no distortion)."""
+    """Unit viewing rays [H, W, 3] of every pixel in the camera frame (a distorted camera's pixels through its
+    undistortion, so the rendered image carries the lens distortion exactly)."""
     u, v = np.meshgrid(np.arange(camera.width, dtype=np.float32), np.arange(camera.height, dtype=np.float32))
+    if camera.distorted:
+        ideal = camera.undistort_points(np.stack([u.ravel(), v.ravel()], axis=1)).reshape(*u.shape, 2)
+        u, v = ideal[..., 0].astype(np.float32), ideal[..., 1].astype(np.float32)
     rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], axis=-1)
     return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
@@ -297,7 +301,8 @@ def _sensor_yaml(camera: Camera, T_BS: np.ndarray, fps: float, comment: str) -> 
     return (f"sensor_type: camera\ncomment: {comment}\nT_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
             f"rate_hz: {fps:g}\nresolution: [{camera.width}, {camera.height}]\ncamera_model: pinhole\n"
             f"intrinsics: [{camera.fx:.9g}, {camera.fy:.9g}, {camera.cx:.9g}, {camera.cy:.9g}]\n"
-            "distortion_model: radial-tangential\ndistortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n")
+            "distortion_model: radial-tangential\n"
+            f"distortion_coefficients: [{', '.join(f'{d:.9g}' for d in camera.dist[:4])}]\n")
 
 
 def _stamps_ns(cfg: SeafloorConfig) -> np.ndarray:
