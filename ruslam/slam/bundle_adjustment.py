@@ -12,7 +12,7 @@ chi2 > 5.991 observations dropped in between):
   the local BAs of a TUM run) and tracks every robustness-grid variant as gtsam does (APE within the runs'
   scatter), but the SLAM on the real TUM fr3 cabinet keyframes is chaotic in such differences: there it loses the
   track at frame 44 (69 % of the frames, 3 maps, against gtsam's 93 % in one map), so gtsam stays the default
-  (BENCHMARKS.md, session 14).
+  (BENCHMARKS.md).
 
 Poses in and out are 4x4 ``T_cw``; held poses come back exactly as given.
 """
@@ -244,7 +244,7 @@ def _gtsam_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
     # the points first, then the poses (the keys' order): the Schur complement's elimination, which gtsam's COLAMD
-    # does not find by itself; sequential Cholesky on it is 1.3x faster per pass (BENCHMARKS.md, session 14)
+    # does not find by itself; sequential Cholesky on it is 1.3x faster per pass (BENCHMARKS.md)
     params.setOrdering(gtsam.Ordering(sorted(values.keys())))
     params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
