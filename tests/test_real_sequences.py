@@ -1,4 +1,4 @@
-"""The SLAM on real video (optional ../shared/data/sequences, skipped when absent): the settings of
+"""The SLAM on real video (optional real samples, skipped when absent): the settings of
 `python evaluate.py task=slam dataset=folder`, one trajectory through the hard parts.
 
 - `subvo_pool_first110`: a crawler in a tiled pool, 1 Hz with dropped frames, strong radial distortion (real

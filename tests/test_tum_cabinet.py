@@ -1,4 +1,4 @@
-"""TUM fr3 cabinet keyframes (real, weakly textured; optional ../shared/data): runnable through dataset=folder, and
+"""TUM fr3 cabinet keyframes (real, weakly textured; optional real samples): runnable through dataset=folder, and
 ORB-SLAM's ORB gives every frame enough keypoints to be used, where plain ORB leaves frames below the minimum."""
 
 from __future__ import annotations

@@ -2,8 +2,7 @@
 
 Every reader returns the same `Sequence` (timestamps in seconds, one `Camera` per image stream, optional stereo
 extrinsics and ground truth as T_world_cam0), so the SLAM and the evaluation never see a dataset's layout.
-Layouts are documented in ``../shared/data/trajectories/SOURCES.md``; every missing or malformed file raises one
-sentence naming it.
+Layouts are described in docs/data.md; every missing or malformed file raises one sentence naming it.
 """
 
 from __future__ import annotations
