@@ -3,7 +3,7 @@
     nice .venv/bin/python bench/scale_drift.py lowtex_s4 --split dev --extractors orb xfeat
     nice .venv/bin/python bench/scale_drift.py lowtex_s4 --extractors xfeat --frames 40 --map-depth
 
-Runs the SLAM with the evaluation's options for each extractor (`task.slam_options`, `dataset.extractor_options`;
+Runs the SLAM with the evaluation's options for each extractor (the library's presets, `dataset.extractor_options`;
 extra `--set slam.<key>=<value>` overrides), loop closing off, so the scale is what tracking and local mapping keep
 on their own. Prints the estimated / true distance between frames ten apart along the trajectory (the estimate's
 scale; monocular, so only its change matters) and the ratio of the last window to the first.
@@ -27,8 +27,7 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ruslam.eval.matching_report import resolve_extractors  # noqa: E402
-from ruslam.eval.slam_report import open_sequence, slam_config_for  # noqa: E402
+from ruslam.eval.slam_report import open_sequence, slam_config_for, slam_extractors  # noqa: E402
 from ruslam.slam import tracking  # noqa: E402
 from ruslam.slam.map import inverse_pose, transform  # noqa: E402
 from ruslam.slam.robustness import MAX_INCIDENCE_DEG, SurveyConfig, survey_poses, survey_seafloor  # noqa: E402
@@ -109,7 +108,7 @@ def main() -> None:
         if probe is not None:
             tracking.Tracker._track_local_map = probe.wrap(original)
         try:
-            extractor = resolve_extractors([name], cfg.task, cfg.dataset.extractor_options)[0][name]
+            extractor = slam_extractors([name], cfg)[0][name]
             traj = run(sequence, extractor, instantiate(slam))
         finally:
             tracking.Tracker._track_local_map = original

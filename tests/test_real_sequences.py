@@ -25,14 +25,13 @@ def _sequence(shared_data, name):
 def _run(seq, name, max_frames=None):
     from conftest import compose
 
-    from ruslam.eval.matching_report import resolve_extractors
-    from ruslam.eval.slam_report import slam_config_for
+    from ruslam.eval.slam_report import slam_config_for, slam_extractors
     from ruslam.eval.trajectory import evaluate_trajectory
     from ruslam.slam.readers import Trajectory
     from ruslam.slam.system import as_config, run
 
     cfg = compose("evaluate", ["task=slam", "dataset=folder", "dataset.root=.", "slam.progress=false"])
-    built, _ = resolve_extractors([name], cfg.task, cfg.dataset.get("extractor_options"))
+    built, _ = slam_extractors([name], cfg)
     slam = as_config(slam_config_for(cfg, name))
     slam.max_frames = max_frames
     result = run(seq, built[name], slam)

@@ -134,12 +134,11 @@ def _grid_setup(name: str):
     """The extractor and SLAM settings `python evaluate.py task=slam dataset=robustness` runs `name` with."""
     from conftest import compose
 
-    from ruslam.eval.matching_report import resolve_extractors
-    from ruslam.eval.slam_report import slam_config_for
+    from ruslam.eval.slam_report import slam_config_for, slam_extractors
     from ruslam.slam.system import as_config
 
     cfg = compose("evaluate", ["task=slam", "dataset=robustness", "slam.progress=false"])
-    built, _ = resolve_extractors([name], cfg.task, cfg.dataset.extractor_options)
+    built, _ = slam_extractors([name], cfg)
     return built[name], as_config(slam_config_for(cfg, name))
 
 

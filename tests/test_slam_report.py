@@ -218,3 +218,28 @@ def test_failure_rule_uses_the_path_of_the_frames_run(tmp_path):
                  "dataset.reader.height=36", "+dataset.splits.dev.turn9.frames=16", "slam.max_frames=10"]
     result = run(compose("evaluate", overrides), slam_run=offset)["results"][0]
     assert not result["ok"] and "of the 1.80 m path" in result["reason"]  # 9 steps of 0.2 m, not 15
+
+
+def test_evaluation_runs_each_extractor_with_the_python_presets(tmp_path):
+    """`evaluate.py task=slam` and `preset(name)` give the same extractor options and SLAM settings, so the README's
+    snippet reproduces the reported figures (the synchronous SLAM is seeded: same inputs, same trajectory)."""
+    from ruslam.eval.slam_report import run
+    from ruslam.slam import preset
+    from ruslam.slam.system import as_config
+
+    seen = {}
+
+    def record(sequence, extractor, cfg):
+        seen[type(extractor).__name__] = (extractor, as_config(cfg))
+        return fake_slam(sequence, extractor, cfg)
+
+    run(_tiny_cfg(tmp_path, "[orb,xfeat,uwnet_xfeat]"), slam_run=record)
+    for name, kind in (("orb", "ORB"), ("xfeat", "XFeat"), ("uwnet_xfeat", "UWNetExtractor")):
+        extractor, cfg = preset(name)
+        evaluated, evaluated_cfg = seen[kind]
+        assert type(extractor).__name__ == kind and extractor.conf == evaluated.conf
+        for part in ("conditioning", "tracking", "mapping", "loop"):
+            assert getattr(cfg, part) == getattr(evaluated_cfg, part), (name, part)
+        assert type(cfg.pair_matcher) is type(evaluated_cfg.pair_matcher)
+    assert seen["XFeat"][0].conf["resize_min"] == 640 and seen["XFeat"][1].tracking.min_inliers == 25
+    assert seen["ORB"][1].conditioning.method == "auto" and seen["ORB"][1].pair_matcher is None

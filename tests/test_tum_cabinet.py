@@ -44,14 +44,13 @@ def test_xfeat_with_lighterglue_tracks_the_cabinet(cabinet):
     textured, wide-baseline sequence. With kNN alone: 7 % of the frames in 3 maps (measured, BENCHMARKS.md)."""
     from conftest import compose
 
-    from ruslam.eval.matching_report import resolve_extractors
-    from ruslam.eval.slam_report import slam_config_for
+    from ruslam.eval.slam_report import slam_config_for, slam_extractors
     from ruslam.eval.trajectory import evaluate_trajectory
     from ruslam.slam.readers import Trajectory
     from ruslam.slam.system import as_config, run
 
     cfg = compose("evaluate", ["task=slam", "slam.progress=false"])
-    built, _ = resolve_extractors(["xfeat"], cfg.task)
+    built, _ = slam_extractors(["xfeat"], cfg)
     seq = read_sequence(cabinet)
     result = run(seq, built["xfeat"], as_config(slam_config_for(cfg, "xfeat")))
     assert result.num_maps == 1 and result.tracked_ratio >= 0.8

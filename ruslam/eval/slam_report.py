@@ -29,6 +29,7 @@ from ruslam.config_checks import SLAM_METRICS as METRICS
 from ruslam.errors import InputError, MissingInput
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import two_view_odometry
+from ruslam.slam.presets import EXTRACTOR_OPTIONS, slam_options
 from ruslam.slam.readers import Trajectory, write_tum_trajectory
 
 log = logging.getLogger(__name__)
@@ -307,15 +308,21 @@ def dataset_label(dataset: DictConfig, opened: dict) -> str:
 
 
 def slam_config_for(cfg, method: str):
-    """The SLAM settings a method runs with: `slam` merged with its `task.slam_options.<method>` (ORB's and XFeat's
-    conditioning and gates)."""
-    return OmegaConf.merge(cfg.slam, (cfg.task.get("slam_options") or {}).get(method) or {})
+    """The SLAM settings a method runs with: `slam`, then the library's preset for it (`ruslam.slam.presets`), then
+    `task.slam_options.<method>`."""
+    return OmegaConf.merge(cfg.slam, slam_options(method), (cfg.task.get("slam_options") or {}).get(method) or {})
+
+
+def slam_extractors(names, cfg) -> tuple[dict, dict]:
+    """`resolve_extractors` with the library's extractor presets, then `task.extractor_options`, then the dataset's."""
+    from ruslam.eval.matching_report import resolve_extractors  # noqa: PLC0415 (shared name -> extractor rules)
+
+    task = OmegaConf.merge({"extractor_options": EXTRACTOR_OPTIONS}, cfg.task)
+    return resolve_extractors(list(names), task, cfg.dataset.get("extractor_options"))
 
 
 def run(cfg: DictConfig, slam_run=None) -> dict:
     """Every sequence x extractor, the tables, plots and (embedded sequences) the turbidity sweep."""
-    from ruslam.eval.matching_report import resolve_extractors  # noqa: PLC0415 (shared name -> extractor rules)
-
     task, dataset = cfg.task, cfg.dataset
     out_dir = Path(cfg.out_dir)
     slam_run = slam_run or get_method(task.slam_runner)
@@ -328,10 +335,9 @@ def run(cfg: DictConfig, slam_run=None) -> dict:
             raise InputError(f"dataset.select names unknown sequence(s) {unknown}; expected some of {list(sequences)}.")
         sequences = {str(s): sequences[str(s)] for s in select}
     opened = {name: open_sequence(dataset, name, entry) for name, entry in sequences.items()}  # fail early
-    extractors, skipped = resolve_extractors(list(cfg.extractors), task, dataset.get("extractor_options"))
+    extractors, skipped = slam_extractors(cfg.extractors, cfg)
     # the chained two-view odometry baseline, with the extractors named in task.two_view_vo
-    vo_names = [str(n) for n in task.get("two_view_vo") or []]
-    vo_extractors, vo_skipped = resolve_extractors(vo_names, task, dataset.get("extractor_options"))
+    vo_extractors, vo_skipped = slam_extractors([str(n) for n in task.get("two_view_vo") or []], cfg)
     skipped.update(vo_skipped)
     runners = {m: (e, slam_run, m) for m, e in extractors.items()}
     runners.update({f"vo_{m}": (e, two_view_odometry.run, m)
