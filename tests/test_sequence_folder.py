@@ -74,7 +74,7 @@ def test_evaluate_runs_every_sequence_with_a_title_that_says_what_it_is(root, tm
     from ruslam.eval.slam_report import run
 
     cfg = compose("evaluate", ["task=slam", "dataset=folder", f"dataset.root={root}", f"dataset.sensor={sensor}",
-                               f"out_dir={tmp_path}", "extractors=[orb]"])
+                               f"out_dir={tmp_path}", "extractors=[orb]", "task.two_view_vo=[]"])
     check_evaluate(cfg)  # the entry point's early check accepts a folder whose sequences are still to be found
     out = run(cfg, slam_run=_fake)
     by_seq = {r["sequence"]: r for r in out["results"]}
@@ -93,7 +93,7 @@ def test_a_list_of_names_and_a_missing_root(root, tmp_path):
     from ruslam.eval.slam_report import run
 
     cfg = compose("evaluate", ["task=slam", "dataset=folder", f"dataset.root={root}", f"out_dir={tmp_path}",
-                               "extractors=[orb]", "dataset.sequences=[mine]"])
+                               "extractors=[orb]", "dataset.sequences=[mine]", "task.two_view_vo=[]"])
     assert [r["sequence"] for r in run(cfg, slam_run=_fake)["results"]] == ["mine"]
     with pytest.raises(ValueError, match=r"needs dataset.root"):
         run(compose("evaluate", ["task=slam", "dataset=folder", f"out_dir={tmp_path}"]), slam_run=_fake)
