@@ -37,7 +37,7 @@ from ruslam.models.netvlad import NetVLAD
 CELL = 8
 SIZE_MULTIPLE = 32
 KEYPOINT_CELLS = (8, 4)
-FINE_CHANNELS = 64
+FINE_CHANNELS = 32
 
 
 def _pad(image: torch.Tensor) -> torch.Tensor:
@@ -203,7 +203,8 @@ class XFeatStudent(nn.Module):
         if c != CELL:
             up = CELL // c
             local = torch.cat([x2, F.pixel_unshuffle(g, c)], 1)  # the cell's grey pixels, as XFeat's unfold
-            fine = self.kp_fine_local(local) + F.interpolate(self.kp_fine_hidden(hidden), scale_factor=up)
+            context = F.interpolate(self.kp_fine_hidden(hidden), scale_factor=up, mode="bilinear")  # by position
+            fine = self.kp_fine_local(local) + context
             logits = subcell_logits(logits, c) + self.kp_fine_out(self.kp_fine_mix(F.relu(fine)))
         logits = logits[..., : h // c, : w // c]
         vlad = self.netvlad(desc.contiguous())
