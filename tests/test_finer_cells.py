@@ -121,3 +121,18 @@ def test_upsampled_cells_are_the_2x_detector_at_1x():
     pooled = torch.nn.functional.avg_pool2d(heat2x[:, None], 2)[:, 0] * 4  # its probability per 1x pixel
     torch.testing.assert_close(cell_logits_to_heatmap(target), pooled, atol=1e-6, rtol=1e-5)
     torch.testing.assert_close(target.exp().sum(1), torch.ones(1, 3, 4))
+
+
+def test_batched_target_warp_equals_the_per_image_one():
+    from ruslam.training.augment import GeometricAugment, seeded_generator, warp_targets, warp_targets_batch
+
+    g = torch.Generator().manual_seed(0)
+    targets = {"keypoint_logits": torch.randn(3, 65, 6, 8, generator=g) * 3,
+               "dense_descriptors": torch.nn.functional.normalize(torch.randn(3, 64, 6, 8, generator=g), dim=1),
+               "global_descriptor": torch.randn(3, 16, generator=g)}
+    homs = torch.stack([GeometricAugment().sample(48, 64, seeded_generator(0, i)) for i in range(3)])
+    batch = warp_targets_batch(targets, homs)
+    for i in range(3):
+        one = warp_targets({k: v[i] for k, v in targets.items()}, homs[i])
+        for key in ("keypoint_logits", "dense_descriptors", "mask", "global_descriptor"):
+            torch.testing.assert_close(batch[key][i], one[key], atol=1e-5, rtol=1e-4)

@@ -112,6 +112,38 @@ def warp_targets(targets: dict[str, torch.Tensor], homography: torch.Tensor) -> 
     return out
 
 
+def warp_targets_batch(targets: dict[str, torch.Tensor], homographies: torch.Tensor) -> dict[str, torch.Tensor]:
+    """`warp_targets` for a batch: maps [B, ...] and pixel homographies [B, 3, 3], one warp call per map kind (the
+    online trainer's GPU path makes its views this way); ``mask`` is [B, h, w]."""
+    logits = targets["keypoint_logits"].float()
+    b, _, h, w = logits.shape
+    size = (h * CELL, w * CELL)
+    prob = logits.softmax(1)
+    heat = F.pixel_shuffle(prob[:, :-1], CELL)  # [B, 1, H, W]
+    dust = F.interpolate(prob[:, -1:], scale_factor=CELL, mode="nearest")
+    stack = torch.cat([heat, dust, torch.ones_like(heat)], 1)
+    warped = warp_perspective(stack, homographies.to(device=stack.device, dtype=stack.dtype), size, mode="bilinear",
+                              padding_mode="zeros", align_corners=True)
+    cells = F.pixel_unshuffle(warped[:, :1], CELL)
+    dust_c = F.avg_pool2d(warped[:, 1:2], CELL)
+    inside = -F.max_pool2d(-warped[:, 2:3], CELL)[:, 0]
+    mask = (inside > 0.999).float()
+    new_prob = torch.cat([cells, dust_c], 1).clamp_min(0)
+    new_prob = new_prob / new_prob.sum(1, keepdim=True).clamp_min(1e-6)
+    dustbin_only = torch.zeros_like(new_prob)
+    dustbin_only[:, -1] = 1.0
+    new_prob = torch.where(mask[:, None] > 0, new_prob, dustbin_only)
+    out = dict(targets)
+    out["keypoint_logits"] = new_prob.clamp_min(1e-8).log()
+    cells_h = torch.stack([cell_homography(hom.cpu()) for hom in homographies])
+    desc = targets["dense_descriptors"].float()
+    desc = warp_perspective(desc, cells_h.to(device=desc.device, dtype=desc.dtype), (h, w), mode="bilinear",
+                            padding_mode="zeros", align_corners=True)
+    out["dense_descriptors"] = F.normalize(desc, dim=1)
+    out["mask"] = mask
+    return out
+
+
 class PhotometricAugment:
     """Brightness, contrast, gamma and Gaussian noise on the student input only (the teacher saw the clean one)."""
 

@@ -17,19 +17,19 @@ The run stops at ``online.budget_s`` seconds of training (or ``online.max_steps`
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 from hydra.utils import instantiate
+from kornia.geometry.transform import warp_perspective
 from omegaconf import DictConfig, OmegaConf
 
 from ruslam.data.synthesis import PseudoUnderwater, degrade
 from ruslam.errors import InputError
 from ruslam.models.export import export_weights
-from ruslam.training.augment import GeometricAugment, PhotometricAugment, seeded_generator, warp_targets
+from ruslam.training.augment import GeometricAugment, PhotometricAugment, seeded_generator, warp_targets_batch
 from ruslam.training.datamodule import PreparedSource
 
 DEFAULTS = {"budget_s": 420.0, "max_steps": None, "save_every_s": 60.0, "log_every": 25, "val_batches": None,
@@ -61,21 +61,20 @@ class OnlineViews:
         self.seed, self.pair_views = seed, pair_views
 
     def _photometric(self, rgb: torch.Tensor, gens: list[torch.Generator], noise: torch.Generator) -> torch.Tensor:
-        """`PhotometricAugment` per image, its scalars from the image's generator, the noise on the device."""
+        """`PhotometricAugment` on the batch at once: each image's scalars from its own generator, the noise on
+        the device."""
         p = self.photometric
-        out = []
-        for image, gen in zip(rgb, gens, strict=True):
-            u = torch.rand(5, generator=gen, dtype=torch.float64).tolist()
-            b = p.brightness * (2 * u[0] - 1)
-            c = math.exp(p.contrast * (2 * u[1] - 1))
-            g = math.exp(p.gamma * (2 * u[2] - 1))
-            mean = image.mean()
-            image = ((image - mean) * c + mean + b).clamp(0, 1) ** g
-            if p.noise_std > 0:
-                noise_std = u[3] * p.noise_std
-                image = image + noise_std * torch.randn(image.shape, generator=noise, device=image.device)
-            out.append(image.clamp(0, 1))
-        return torch.stack(out)
+        u = torch.stack([torch.rand(5, generator=gen, dtype=torch.float64) for gen in gens]).float().to(rgb.device)
+        shape = (-1, 1, 1, 1)
+        b = (p.brightness * (2 * u[:, 0] - 1)).view(shape)
+        c = torch.exp(p.contrast * (2 * u[:, 1] - 1)).view(shape)
+        g = torch.exp(p.gamma * (2 * u[:, 2] - 1)).view(shape)
+        mean = rgb.mean(dim=(1, 2, 3), keepdim=True)
+        out = ((rgb - mean) * c + mean + b).clamp(0, 1) ** g
+        if p.noise_std > 0:
+            std = (u[:, 3] * p.noise_std).view(shape)
+            out = out + std * torch.randn(rgb.shape, generator=noise, device=rgb.device, dtype=rgb.dtype)
+        return out.clamp(0, 1)
 
     def _view(self, rgb, depth, targets, keys: list[tuple[int, ...]], view: int, noise: torch.Generator):
         gens = [seeded_generator(self.seed, *key, view) for key in keys]
@@ -87,24 +86,16 @@ class OnlineViews:
                           self.synthesis.blur_angle_deg, self.synthesis.blur_length, generator=noise)
         if self.photometric is not None:
             rgb = self._photometric(rgb, gens, noise)
-        homs, images, warped = [], [], []
-        for i, gen in enumerate(gens):
-            h, w = rgb.shape[-2:]
-            hom = self.geometric.sample(h, w, gen) if self.geometric is not None else torch.eye(3, dtype=torch.float64)
-            one = {k: v[i] for k, v in targets.items()}
-            if self.geometric is not None:
-                from kornia.geometry.transform import warp_perspective  # noqa: PLC0415
-
-                images.append(warp_perspective(rgb[i:i + 1], hom[None].to(rgb), (h, w), mode="bilinear",
-                                               padding_mode="zeros", align_corners=True)[0])
-                warped.append(warp_targets(one, hom))
-            else:
-                images.append(rgb[i])
-                warped.append({**one, "mask": torch.ones(one["keypoint_logits"].shape[1:], device=rgb.device)})
-            homs.append(hom)
-        batch = {k: torch.stack([t[k] for t in warped]) for k in warped[0]}
-        batch["image"] = torch.stack(images)
-        return batch, torch.stack(homs)
+        h, w = rgb.shape[-2:]
+        if self.geometric is None:
+            homs = torch.eye(3, dtype=torch.float64).expand(len(keys), 3, 3).clone()
+            mask = torch.ones(rgb.shape[0], *targets["keypoint_logits"].shape[2:], device=rgb.device)
+            return {**targets, "mask": mask, "image": rgb}, homs
+        homs = torch.stack([self.geometric.sample(h, w, g) for g in gens])  # [B, 3, 3] float64, CPU
+        batch = warp_targets_batch(targets, homs)
+        batch["image"] = warp_perspective(rgb, homs.to(rgb), (h, w), mode="bilinear", padding_mode="zeros",
+                                          align_corners=True)
+        return batch, homs
 
     @torch.no_grad()
     def __call__(self, rgb: torch.Tensor, depth: torch.Tensor, keys: list[tuple[int, ...]]) -> dict:
