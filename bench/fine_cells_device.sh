@@ -4,7 +4,7 @@
 # on the GPU, no teacher cache), else the CPU (fp32). Run from the repository root:
 #
 #   bash bench/fine_cells_device.sh site          # here: the packages a bare torch machine lacks -> .devsite/
-#   OUT=outputs/fine_cells bash bench/fine_cells_device.sh                        # ~7 min of training + ~1 min
+#   OUT=outputs/fine_cells bash bench/fine_cells_device.sh             # 6 min of training + ~1 min + the tune set
 #   OUT=outputs/rehearsal BUDGET_S=30 bash bench/fine_cells_device.sh online.max_steps=3 \
 #       datamodule.limit_images=40 datamodule.val_size=8 datamodule.batch_size=4   # CPU rehearsal, ~1 min
 #
@@ -17,8 +17,10 @@
 #   KORNIA_RS_WHEEL=.whl/kornia_rs-0.2.0-cp312-cp312-manylinux_2_17_x86_64.manylinux2014_x86_64.whl \
 #     bash bench/fine_cells_device.sh site
 #
-# Writes into $OUT (3 files): uwnet_xfeat_s4.pt (fp16, rewritten every minute of training), online_losses.json
-# (held-out losses before/after, steps, images/s, device) and train_log.txt. Extra arguments are Hydra overrides.
+# Writes into $OUT (4 files): uwnet_xfeat_s4.pt (fp16, rewritten every minute of training), online_losses.json
+# (held-out losses before/after, steps, images/s, device), train_log.txt, and tune.md: the tune set (procedural
+# Upatches, plain) for the shipped file and the new one, the measure files are chosen on (TUNE=0 skips it, ~1 min).
+# Extra arguments are Hydra overrides of the training.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -47,5 +49,9 @@ HYDRA_DIR=$(mktemp -d)
 (command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total --format=csv,noheader) || true
 "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 set -o pipefail
-timeout "${TIMEOUT_S:-540}" "$PY" train.py experiment=fine_cells out_dir="$OUT" hydra.run.dir="$HYDRA_DIR" \
-  online.budget_s="${BUDGET_S:-420}" "$@" 2>&1 | tee "$OUT/train_log.txt"
+timeout "${TIMEOUT_S:-470}" "$PY" train.py experiment=fine_cells out_dir="$OUT" hydra.run.dir="$HYDRA_DIR" \
+  online.budget_s="${BUDGET_S:-360}" "$@" 2>&1 | tee "$OUT/train_log.txt"
+if [[ "${TUNE:-1}" == 1 && -f "$OUT/uwnet_xfeat_s4.pt" ]]; then
+  timeout "${TUNE_TIMEOUT_S:-100}" "$PY" evaluate.py task=matching "extractors=[uwnet_xfeat,$OUT/uwnet_xfeat_s4.pt]" \
+    'task.rotation_tta=[none]' hydra.run.dir="$(mktemp -d)" 2>&1 | grep '^|' | tee "$OUT/tune.md" || true
+fi
