@@ -108,7 +108,8 @@ def test_vamr_desk_every_3rd_frame_start(tmp_path):
     if not VAMR.is_dir():
         pytest.skip("../shared/data/sequences/vamr_desk_handheld is absent (optional real data)")
     names = list_images(VAMR, 3)[:20]
-    extract_features(VAMR, tmp_path / "f.h5", load_extractor("uwnet_xfeat"), names, progress=False)
+    uwnet = load_extractor("uwnet_xfeat", detection_threshold=1e-5)  # as task=sfm runs it
+    extract_features(VAMR, tmp_path / "f.h5", uwnet, names, progress=False)
     pairs = make_pairs(names, window=10)
     write_pairs(tmp_path / "pairs.txt", pairs)
     match_features(tmp_path / "f.h5", pairs, tmp_path / "m.h5", progress=False)
