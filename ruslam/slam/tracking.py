@@ -164,23 +164,19 @@ class Tracker:
             return False
         prev.T_cw = scale_translation(T_lr, ref.current_scale() / scale) @ ref.pose()  # after BA, loops, merges
         prev.points = self.store.resolve(prev.points)
-        best = (np.zeros(0, int), np.zeros(0, int))
-        for match in self._matchers():
-            ia, ib = match(prev, np.arange(len(prev)), frame)
-            if len(ia) > len(best[0]):
-                best = (ia, ib)
-            if len(best[0]) >= self.cfg.init_min_matches:
-                break
-        ia, ib = best
         c = self.cfg
         prior = self.velocity[:3, :3] if self.velocity is not None and self.last is prev else None
-        out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K, self.seed + frame.index,
-                                      step_min_parallax_deg(frame.K, self.sigma), c.min_inliers,
-                                      sigma=self.sigma if self.binary else c.init_sigma_float, prior_R=prior,
-                                      step=True)
+        out = None
+        for ia, ib in self._bridge_matches(prev, frame):
+            if len(ia) >= c.min_inliers:
+                out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K,
+                                              self.seed + frame.index, step_min_parallax_deg(frame.K, self.sigma),
+                                              c.min_inliers, sigma=self.sigma if self.binary else c.init_sigma_float,
+                                              prior_R=prior, step=True)
+            if out is not None:
+                break
         if out is None:
-            log.debug("Frame %d: no bridge from frame %d (%d matches, two-view geometry failed).", frame.index,
-                      prev.index, len(ia))
+            log.debug("Frame %d: no bridge from frame %d (two-view geometry failed).", frame.index, prev.index)
             return False
         T21, X, good, model = out  # X in prev's camera frame, unit median depth
         ia, ib, X = ia[good], ib[good], X[good]
@@ -222,6 +218,15 @@ class Tracker:
         log.info("Frame %d: tracking lost; bridged from frame %d by two-view geometry (%s, %d points, %s scale).",
                  frame.index, prev.index, model, len(ia), "map" if np.count_nonzero(has) >= 10 else "step")
         return True
+
+    def _bridge_matches(self, prev: Frame, frame: Frame):
+        """Match sets for a bridge, cheapest first: kNN + ratio; mutual nearest neighbours alone (repetitive texture,
+        tiles, fails the ratio test; RANSAC sorts the matches); the pair matcher if there is one."""
+        everything = np.arange(len(prev))
+        yield self._match_knn(prev, everything, frame)
+        yield match_knn_ratio(prev.descriptors, frame.descriptors, self.binary, self.max_distance, 1.0)
+        if self.pair_matcher is not None:
+            yield self._match_pair(prev, everything, frame)
 
     def _lost(self, frame: Frame) -> None:
         """One more failed frame; after `lost_frames` of them, a new map (the old one stays in the Atlas)."""
