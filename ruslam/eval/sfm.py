@@ -111,6 +111,7 @@ def reconstruct(image_dir: Path, names: list[str], features_path: Path, pairs_pa
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.max_num_trials = 20000
     verify.ransac.min_inlier_ratio = 0.1
+    verify.ransac.random_seed = int(seed)
     pycolmap.verify_matches(str(db_path), str(pairs_path), verify)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.min_num_matches = int(min_num_matches)
