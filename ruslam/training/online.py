@@ -8,7 +8,8 @@ frozen teacher on them, and makes each student view on the same device: the pseu
 image, view). The losses are `DistillationModule`'s. On CUDA the student runs under bf16 autocast (fp16 with a
 gradient scaler where bf16 is missing); on the CPU in fp32, so the same config rehearses on either machine.
 
-The run stops at ``online.budget_s`` seconds of training (or ``online.max_steps``), evaluates the held-out views
+The learning rate warms up linearly over ``online.warmup_steps``. The run stops at ``online.budget_s`` seconds of
+training (or ``online.max_steps``), evaluates the held-out views
 (fixed per image, drawn once) before and after, and writes into ``out_dir``: the fp16 weights file
 (``export_name``, rewritten every ``online.save_every_s`` seconds so a stopped run still leaves one) and
 ``online_losses.json`` (held-out losses before and after, steps, images per second, the device).
@@ -33,7 +34,7 @@ from ruslam.training.augment import GeometricAugment, PhotometricAugment, seeded
 from ruslam.training.datamodule import PreparedSource
 
 DEFAULTS = {"budget_s": 420.0, "max_steps": None, "save_every_s": 60.0, "log_every": 25, "val_batches": None,
-            "device": "auto", "precision": "auto"}
+            "device": "auto", "precision": "auto", "warmup_steps": 0}
 
 
 def _device(name: str) -> torch.device:
@@ -168,6 +169,9 @@ def train_online(cfg: DictConfig) -> float:
     setup_s = time.perf_counter() - t0
     before = _held_out(module, val_batches, dtype, device)
     optimizer = module.configure_optimizers()
+    # Adam's first steps move every weight by ~lr whatever its gradient; a linear warm-up keeps a trained start.
+    warmup = max(int(opts["warmup_steps"]), 0)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / warmup) if warmup else 1.0)
     scaler = torch.amp.GradScaler(device.type, enabled=dtype == torch.float16)
     params = [p for p in module.parameters() if p.requires_grad]
     print(f"online training on {device} ({dtype or torch.float32}), {len(train_idx)} train / {len(val_idx)} held-out "
@@ -199,6 +203,7 @@ def train_online(cfg: DictConfig) -> float:
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         scaler.step(optimizer)
         scaler.update()
+        schedule.step()
         step += 1
         if step % int(opts["log_every"]) == 0:
             terms = " ".join(f"{k}={out[k].item():.4f}" for k in ("detector", "local", "global", "correspondence",
