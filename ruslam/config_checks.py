@@ -20,7 +20,7 @@ from ruslam.errors import InputError, MissingInput, MissingWeights
 
 #: Columns of the SLAM tables (`dataset.metrics`) and their headers.
 SLAM_METRICS = {"ape": "APE", "rpe": "RPE", "tracked": "Tracked", "tracked_after_init": "Tracked after init",
-                "maps": "Maps", "ape_path": "APE % of path", "fps": "fps"}
+                "maps": "Maps", "tracked_all_maps": "In all maps", "ape_path": "APE % of path", "fps": "fps"}
 SLAM_SENSORS = ("auto", "mono", "stereo")
 WEIGHT_SUFFIXES = (".pt", ".pth", ".ckpt")
 

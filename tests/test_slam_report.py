@@ -187,6 +187,7 @@ def test_robustness_matrix_reports_tracking_after_init_maps_and_ape_share(tmp_pa
         keep = slice(len(sequence) // 8, None)
         est.timestamps, est.poses = sequence.groundtruth.timestamps[keep], est.poses[keep]
         est.num_maps = 2
+        est.map_frames = [len(est.timestamps), 2]  # a second map that never merged holds 2 frames
         return est
 
     cfg = compose("evaluate", ["task=slam", "dataset=robustness", "dataset.split=dev", f"out_dir={tmp_path}",
@@ -197,6 +198,7 @@ def test_robustness_matrix_reports_tracking_after_init_maps_and_ape_share(tmp_pa
     result = run(cfg, slam_run=late_start)["results"][0]
     assert result["ok"] and result["frames"] == 16 and result["tracked"] == pytest.approx(14 / 16)
     assert result["tracked_after_init"] == pytest.approx(1.0) and result["maps"] == 2
+    assert result["tracked_all_maps"] == pytest.approx(16 / 16)
     path = result["ape"] / result["ape_path"]  # the path over the 16 frames: 15 steps of 0.1 x 2 m
     assert path == pytest.approx(15 * 0.2, rel=0.02)
     table = (tmp_path / "table.md").read_text()

@@ -35,9 +35,10 @@ from ruslam.slam.readers import Trajectory, write_tum_trajectory
 log = logging.getLogger(__name__)
 FAIL = "×"
 TITLES = {"tracked": "tracked fraction", "tracked_after_init": "tracked after initialisation", "maps": "maps",
+          "tracked_all_maps": "frames in all maps",
           "ape_path": "APE as % of the path", "fps": "frames/s"}
 ERRORS = ("ape", "rpe", "ape_path")  # metrics in metres (lower is better, meaningless for a failed run)
-HIGHER_IS_BETTER = ("tracked", "tracked_after_init", "fps")
+HIGHER_IS_BETTER = ("tracked", "tracked_after_init", "tracked_all_maps", "fps")
 
 
 @dataclass
@@ -51,6 +52,7 @@ class RunResult:
     tracked: float = 0.0  # fraction of the sequence's frames with a pose
     tracked_after_init: float = 0.0  # fraction of the frames from the first posed one on that have a pose
     maps: int = 0  # maps the SLAM built (1 when it never lost itself for good; 0 when it never initialised)
+    tracked_all_maps: float = 0.0  # fraction of the frames with a pose in any map (the reported one or another)
     ape_path: float = math.nan  # APE / length of the ground-truth path over the frames run
     frames: int = 0
     runtime_s: float = 0.0
@@ -100,7 +102,7 @@ def average_over_common_successes(results: list[RunResult], sequences: list[str]
 def _cell(value: float, metric: str) -> str:
     if value is None or not np.isfinite(value):
         return FAIL
-    if metric in ("tracked", "tracked_after_init"):
+    if metric in ("tracked", "tracked_after_init", "tracked_all_maps"):
         return f"{100 * value:.0f}%"
     if metric == "ape_path":
         return f"{100 * value:.2f}%"
@@ -150,8 +152,8 @@ def results_table(results: list[RunResult], sequences: list[str], methods: list[
 
 
 def runs_table(results: list[RunResult], labels: dict) -> tuple[str, str]:
-    head = ["sequence", "method", "status", "frames", "tracked", "tracked_after_init", "maps", "runtime_s", "fps",
-            "keyframes", "loops"]
+    head = ["sequence", "method", "status", "frames", "tracked", "tracked_after_init", "maps", "tracked_all_maps",
+            "runtime_s", "fps", "keyframes", "loops"]
     md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     out = io.StringIO()
     writer = csv.writer(out)
@@ -159,10 +161,12 @@ def runs_table(results: list[RunResult], labels: dict) -> tuple[str, str]:
     for r in results:
         status = "ok" if r.ok else f"{FAIL} {r.reason}"
         md.append(f"| {r.sequence} | {labels.get(r.method, r.method)} | {status} | {r.frames} | {r.tracked:.0%} | "
-                  f"{r.tracked_after_init:.0%} | {r.maps} | {r.runtime_s:.1f} | {r.fps:.2f} | {r.keyframes} | "
+                  f"{r.tracked_after_init:.0%} | {r.maps} | {r.tracked_all_maps:.0%} | {r.runtime_s:.1f} | "
+                  f"{r.fps:.2f} | {r.keyframes} | "
                   f"{r.loops} |")
         writer.writerow([r.sequence, r.method, "ok" if r.ok else "x", r.frames, f"{r.tracked:.4f}",
-                         f"{r.tracked_after_init:.4f}", r.maps, f"{r.runtime_s:.2f}", f"{r.fps:.3f}", r.keyframes,
+                         f"{r.tracked_after_init:.4f}", r.maps, f"{r.tracked_all_maps:.4f}", f"{r.runtime_s:.2f}",
+                         f"{r.fps:.3f}", r.keyframes,
                          r.loops, f"{r.ape:.6g}", f"{r.rpe:.6g}", f"{r.ape_path:.6g}", r.reason])
     return "\n".join(md) + "\n", out.getvalue()
 
@@ -247,6 +251,7 @@ def evaluate_run(sequence, estimate, method: str, alignment: str, rule, rpe_delt
     base = dict(sequence=sequence.name, method=method, tracked=tracked, frames=frames, runtime_s=runtime,
                 tracked_after_init=posed / max(frames - first, 1) if posed else 0.0,
                 maps=int(getattr(estimate, "num_maps", 1 if posed else 0)),
+                tracked_all_maps=sum(getattr(estimate, "map_frames", None) or [posed]) / max(frames, 1),
                 fps=frames / runtime if runtime > 0 else 0.0, keyframes=int(getattr(estimate, "num_keyframes", 0)),
                 loops=len(getattr(estimate, "loops", [])))
     gt = sequence.groundtruth
