@@ -129,7 +129,7 @@ def test_step_zero_extractor_ranks_keypoints_as_xfeat(tmp_path):
     image = (np.kron(rng.random((12, 16, 3)), np.ones((16, 16, 1))) * 0.7 + rng.random((192, 256, 3)) * 0.3)
     image = (image * 255).astype(np.uint8)
     student = load_extractor(path, max_keypoints=60, detection_threshold=0.05, subpixel_radius=0,
-                             resize_min=None).extract(image)  # XFeat runs at the input size
+                             resize_min=None, min_pixels=None).extract(image)  # XFeat runs at the input size
     xfeat = load_extractor("xfeat", max_keypoints=60).extract(image)
     same = {tuple(p) for p in np.round(student["keypoints"]).astype(int)} & {
         tuple(p) for p in np.round(xfeat["keypoints"]).astype(int)}
