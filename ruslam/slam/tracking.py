@@ -4,9 +4,10 @@ A frame is first searched in windows around the constant-velocity prediction (th
 that fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the
 reference keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor
 without any window (PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); with a learned pair
-matcher (LightGlue), the last frame and the reference keyframe once more through it. When all fail the
-tracker is lost: it relocalises against the active map (the latest keyframes and, with a global descriptor,
-retrieval) for `lost_frames` frames, then starts a new map in the Atlas at once (ORB-SLAM3); while that map
+matcher (LightGlue), the last frame and the reference keyframe once more through it. When all fail, the frame is
+bridged to the last tracked frame by two-view geometry in the same map (monocular); when that fails too the tracker
+is lost: it relocalises against the active map (the latest keyframes and, with a global descriptor, retrieval) and
+tries the bridge again for `lost_frames` frames, then starts a new map in the Atlas (ORB-SLAM3); while that map
 initialises it keeps trying to relocalise in the map it lost. Loop closing merges the maps when they meet again.
 
 The Tracker holds no threads: it hands keyframes to `keyframes.insert_keyframe(kf)` and asks `keyframes.idle()`
@@ -216,7 +217,7 @@ class Tracker:
         frame.points = self.store.resolve(kf.points.copy())
         self.bridges.append((frame.index, prev.index))
         log.info("Frame %d: tracking lost; bridged from frame %d by two-view geometry (%s, %d points, %s scale).",
-                 frame.index, prev.index, model, len(ia), "map" if np.count_nonzero(has) >= 10 else "step")
+                 frame.index, prev.index, model, len(ia), "map" if np.count_nonzero(has) >= 10 else "speed")
         return True
 
     def _bridge_matches(self, prev: Frame, frame: Frame):
