@@ -89,7 +89,7 @@ def test_bad_folder_is_one_sentence_exit_2(case, tmp_path):
 
 @pytest.mark.slow
 def test_task_on_the_rendered_set_writes_models_table_and_results(tmp_path):
-    proc = _evaluate(["dataset.render.num_views=8", "'extractors=[uwnet_xfeat,sift]'", "task.max_keypoints=1000",
+    proc = _evaluate(["dataset.render.num_views=8", "extractors=[uwnet_xfeat,sift]", "task.max_keypoints=1000",
                       f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     results = json.loads((tmp_path / "run" / "results.json").read_text())["results"]
