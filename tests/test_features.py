@@ -169,7 +169,7 @@ def test_bad_inputs_one_sentence_exit_2_no_output(case, tmp_path, capsys, image_
         cv2.imwrite(str(folder / "ok.png"), textured()[..., ::-1])
         (folder / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
         argv = ["extract", str(folder), str(out), "--extractor", "sift"]
-        expected = "cannot be read as an image"
+        expected = "cannot be decoded as an image"
     elif case == "missing":
         argv = ["extract", str(tmp_path / "nowhere"), str(out), "--extractor", "sift"]
         expected = "does not exist"

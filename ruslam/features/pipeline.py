@@ -27,6 +27,7 @@ from ruslam.features.hloc_io import (
     write_feature_group,
     write_matches_group,
 )
+from ruslam.slam.readers import load_image
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
@@ -49,20 +50,6 @@ def list_images(root: str | Path, every: int = 1) -> list[str]:
 def _natural_key(name: str) -> list:
     """Name order with numbers compared as numbers (frame 9 before frame 10)."""
     return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", name)]
-
-
-def read_image(path: Path) -> np.ndarray:
-    """uint8 RGB (or grey) image; an unreadable file is one sentence naming it."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None or image.size == 0:
-        raise InputError(f"Image {path} cannot be read as an image.")
-    if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
-    if image.dtype != np.uint8:
-        raise InputError(f"Image {path} has pixel type {image.dtype}; expected 8 or 16 bits.")
-    if image.ndim == 3:
-        image = np.ascontiguousarray(image[..., 2::-1])  # BGR(A) -> RGB
-    return image
 
 
 def resize_longer(image: np.ndarray, resize_max: int | None) -> tuple[np.ndarray, float]:
@@ -99,7 +86,7 @@ def extract_features(image_dir: str | Path, out_path: str | Path, extractor, nam
     total, start = 0, time.perf_counter()
     with atomic_path(out_path) as tmp, h5py.File(tmp, "w", libver="latest") as fd:
         for name in tqdm(names, desc="extracting", unit="image", disable=not progress):
-            image = read_image(image_dir / name)
+            image = load_image(image_dir / name)
             h, w = image.shape[:2]
             small, scale = resize_longer(image, resize_max)
             pred = extractor.extract(small)
