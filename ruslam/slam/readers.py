@@ -83,6 +83,13 @@ class Sequence:
     def stereo(self) -> bool:
         return len(self.cameras) == 2
 
+    def subset(self, indices) -> Sequence:
+        """The frames `indices` only (a camera that dropped frames); cameras and ground truth unchanged."""
+        keep = list(indices)
+        return Sequence(name=self.name, cameras=self.cameras, timestamps=self.timestamps[keep],
+                        image_paths=[self.image_paths[i] for i in keep], T_cam0_cam1=self.T_cam0_cam1,
+                        groundtruth=self.groundtruth)
+
     def load(self, i: int) -> list[np.ndarray]:
         """Frame i as one uint8 image per camera (HxW grey, or HxWx3 RGB for colour files)."""
         return [load_image(p) for p in self.image_paths[i]]

@@ -265,7 +265,4 @@ def robustness_sequence(name: str = "survey", cache_dir: str | Path | None = Non
     if not drop < set(range(len(seq))):
         raise ValueError(f"Robustness variant {name!r}: dropped frames {sorted(drop)} must lie within 0-{len(seq) - 1} "
                          "and leave frames.")
-    keep = [i for i in range(len(seq)) if i not in drop]
-    return Sequence(name=name, cameras=seq.cameras, timestamps=seq.timestamps[keep],
-                    image_paths=[seq.image_paths[i] for i in keep], T_cam0_cam1=seq.T_cam0_cam1,
-                    groundtruth=seq.groundtruth)
+    return seq.subset(i for i in range(len(seq)) if i not in drop)
