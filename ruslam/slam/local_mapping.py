@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.bundle_adjustment import SOLVERS, bundle_adjustment
-from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     CHI2_2DOF,
     epipolar_mask,

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
-from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
 from ruslam.slam.map import KeyFrame, Map, inverse_pose, transform, update_normals
 from ruslam.slam.optimization import pose_graph_optimization

@@ -21,10 +21,10 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.bundle_adjustment import bundle_adjustment
 from ruslam.slam.conditioning import ImageConditioning
-from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, project, triangulate
 from ruslam.slam.keyframe_pipeline import KeyframePipeline, ThreadedKeyframePipeline
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
-from ruslam.slam.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import CHI2_2DOF, solve_pnp_ransac, step_min_parallax_deg, two_view_initialization
 from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
