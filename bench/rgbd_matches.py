@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from ruslam import load_extractor
+from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.models.lightglue import WEIGHTS, LightGlueMatcher
-from ruslam.slam.feature_matching import match_knn_ratio
 from ruslam.slam.readers import read_tum_trajectory
 from ruslam.slam.sequence_folder import read_sequence
 from ruslam.slam.tracking import TrackingConfig

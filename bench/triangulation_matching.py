@@ -17,7 +17,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ruslam.slam.feature_matching import descriptor_distances, match_knn_ratio
+from ruslam.models.feature_matching import descriptor_distances, match_knn_ratio
 from ruslam.slam.geometry import epipolar_mask, fundamental_from_poses, pose_matrix, project
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ruslam.slam.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
+from ruslam.models.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
     epipolar_mask,
     fundamental_from_poses,

@@ -203,7 +203,7 @@ def test_a_pair_matcher_is_asked_only_when_nearest_neighbours_fail(caplog, monke
     is matched by the pair matcher (a kNN stand-in here) and no frame is lost; without one, half the frames are. On an
     easy sequence it is never called, and the run is the same as without it."""
     import ruslam.slam.tracking as tracking
-    from ruslam.slam.feature_matching import match_knn_ratio
+    from ruslam.models.feature_matching import match_knn_ratio
     from ruslam.slam.geometry import pose_matrix
     from ruslam.slam.optimization import se3_exp
 

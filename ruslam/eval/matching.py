@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ruslam.slam.feature_matching import descriptor_distances
+from ruslam.models.feature_matching import descriptor_distances
 
 THRESHOLDS = tuple(range(1, 11))
 ROTATION_BINS = ((0.0, 30.0), (30.0, 90.0), (90.0, 180.0))

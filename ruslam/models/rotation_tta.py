@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ruslam.models.extractor import Extractor, check_image
-from ruslam.slam.feature_matching import match_knn_ratio
+from ruslam.models.feature_matching import match_knn_ratio
 
 ROTATIONS = (0, 1, 2, 3)  # multiples of 90° counter-clockwise, as np.rot90
 

@@ -15,7 +15,7 @@ from contextlib import closing
 
 import numpy as np
 
-from ruslam.slam.feature_matching import match_knn_ratio
+from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.slam.geometry import step_min_parallax_deg, two_view_initialization
 from ruslam.slam.map import inverse_pose, scale_translation, transform
 from ruslam.slam.system import SLAMTrajectory, _frames, as_config
