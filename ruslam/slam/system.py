@@ -21,6 +21,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from ruslam.data.readers import FrameReadError, Trajectory, write_tum_trajectory
 from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.bundle_adjustment import bundle_adjustment
@@ -30,7 +31,6 @@ from ruslam.slam.keyframe_pipeline import KeyframePipeline, ThreadedKeyframePipe
 from ruslam.slam.local_mapping import LocalMapper, MappingConfig
 from ruslam.slam.loop_closing import LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, inverse_pose
-from ruslam.slam.readers import FrameReadError, Trajectory, write_tum_trajectory
 from ruslam.slam.solver_process import SolverProcess
 from ruslam.slam.tracking import Tracker, TrackingConfig
 
