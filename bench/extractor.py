@@ -62,9 +62,9 @@ def round_robin(fns: dict, reps: int) -> dict[str, float]:
 def orb_frames(count: int, tum: str | None = None) -> dict[str, list[np.ndarray]]:
     """Hard frames: the robustness matrix's DEV low-texture and turbid variants (rendered on first use), the
     embedded 640x480 sequence at Jerlov 9C, and a TUM RGB-D folder (e.g. the fr3 cabinet keyframes) if given."""
-    from ruslam.slam.readers import read_tum  # noqa: PLC0415
-    from ruslam.slam.robustness import robustness_sequence  # noqa: PLC0415
-    from ruslam.slam.synthetic_sequence import synthetic_sequence  # noqa: PLC0415
+    from ruslam.data.readers import read_tum  # noqa: PLC0415
+    from ruslam.data.robustness import robustness_sequence  # noqa: PLC0415
+    from ruslam.data.synthetic_sequence import synthetic_sequence  # noqa: PLC0415
 
     sets = {
         "robustness DEV lowtex 320x240": robustness_sequence("lowtex", progress=False, seed=1, contrast=0.4,

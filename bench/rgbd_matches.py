@@ -25,10 +25,10 @@ import cv2
 import numpy as np
 
 from ruslam import load_extractor
+from ruslam.data.readers import read_tum_trajectory
+from ruslam.data.sequence_folder import read_sequence
 from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.models.lightglue import WEIGHTS, LightGlueMatcher
-from ruslam.slam.readers import read_tum_trajectory
-from ruslam.slam.sequence_folder import read_sequence
 from ruslam.slam.tracking import TrackingConfig
 
 DEPTH_SCALE = 5000.0  # TUM: 16-bit depth PNG, metres = value / 5000

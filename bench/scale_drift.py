@@ -27,11 +27,11 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ruslam.data.robustness import MAX_INCIDENCE_DEG, SurveyConfig, survey_poses, survey_seafloor  # noqa: E402
+from ruslam.data.synthetic_sequence import pixel_rays, render, texture_pyramid  # noqa: E402
 from ruslam.eval.slam_report import open_sequence, slam_config_for, slam_extractors  # noqa: E402
 from ruslam.slam import tracking  # noqa: E402
 from ruslam.slam.map import inverse_pose, transform  # noqa: E402
-from ruslam.slam.robustness import MAX_INCIDENCE_DEG, SurveyConfig, survey_poses, survey_seafloor  # noqa: E402
-from ruslam.slam.synthetic_sequence import pixel_rays, render, texture_pyramid  # noqa: E402
 from ruslam.slam.system import run  # noqa: E402
 
 

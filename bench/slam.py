@@ -44,17 +44,17 @@ import numpy as np
 import torch
 
 from ruslam import load_extractor
+from ruslam.data.readers import Trajectory
+from ruslam.data.synthetic_sequence import synthetic_sequence
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import SLAMConfig, run
 from ruslam.slam.bundle_adjustment import SOLVERS
 from ruslam.slam.local_mapping import MappingConfig
 from ruslam.slam.loop_closing import LoopConfig
-from ruslam.slam.readers import Trajectory
-from ruslam.slam.synthetic_sequence import synthetic_sequence
 
 # stage -> (file suffix, function) pairs whose cumulative times add up to it (see --profile)
 STAGES = {
-    "load frame": [("slam/readers.py", "load")],
+    "load frame": [("data/readers.py", "load")],
     "extract": [("slam/system.py", "make_frame")],
     "track (all)": [("slam/tracking.py", "track")],
     "  keyframe decision": [("slam/tracking.py", "_need_keyframe")],
@@ -146,7 +146,7 @@ def load_sequence(args):
         return synthetic_sequence(args.level, stereo=args.stereo, num_frames=200, seed=0, progress=False)
     from omegaconf import OmegaConf  # noqa: PLC0415
 
-    from ruslam.slam.robustness import robustness_sequence  # noqa: PLC0415
+    from ruslam.data.robustness import robustness_sequence  # noqa: PLC0415
 
     split, name = args.variant.split(":")
     grid = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "dataset" / "robustness.yaml")

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ruslam.slam.synthetic_sequence import (
+from ruslam.data.synthetic_sequence import (
     SeafloorConfig,
     circuit_poses,
     make_seafloor,

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ruslam.data.readers import FrameReadError
 from ruslam.slam.geometry import pose_matrix, project
 from ruslam.slam.map import inverse_pose
-from ruslam.slam.readers import FrameReadError
 
 
 @dataclass

@@ -86,8 +86,8 @@ def test_python_row(number, call, message, scratch):
     from ruslam import load_extractor
     from ruslam.data.hpatches import HPatches
     from ruslam.data.nyu import NYUDepthV2
+    from ruslam.data.readers import read_aqualoc, read_euroc, read_image_folder, read_tum
     from ruslam.data.rgbd_folder import RGBDFolder
-    from ruslam.slam.readers import read_aqualoc, read_euroc, read_image_folder, read_tum
 
     namespace = dict(np=np, load_extractor=load_extractor, HPatches=HPatches, NYUDepthV2=NYUDepthV2,
                      RGBDFolder=RGBDFolder, read_euroc=read_euroc, read_tum=read_tum, read_aqualoc=read_aqualoc,

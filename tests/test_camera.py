@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ruslam.slam.camera import Camera
+from ruslam.data.camera import Camera
 
 EUROC_CAM0 = Camera(752, 480, 458.654, 457.296, 367.215, 248.375,
                     dist=[-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ruslam.slam.readers import (
+from ruslam.data.readers import (
     FrameReadError,
     read_aqualoc,
     read_euroc,

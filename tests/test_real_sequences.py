@@ -14,7 +14,7 @@ pytestmark = pytest.mark.slow
 
 
 def _sequence(shared_data, name):
-    from ruslam.slam.sequence_folder import read_sequence
+    from ruslam.data.sequence_folder import read_sequence
 
     root = shared_data / "sequences" / name
     if not root.is_dir():
@@ -25,9 +25,9 @@ def _sequence(shared_data, name):
 def _run(seq, name, max_frames=None):
     from conftest import compose
 
+    from ruslam.data.readers import Trajectory
     from ruslam.eval.slam_report import slam_config_for, slam_extractors
     from ruslam.eval.trajectory import evaluate_trajectory
-    from ruslam.slam.readers import Trajectory
     from ruslam.slam.system import as_config, run
 
     cfg = compose("evaluate", ["task=slam", "dataset=folder", "dataset.root=.", "slam.progress=false"])

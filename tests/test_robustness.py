@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ruslam.slam.robustness import SurveyConfig, robustness_sequence, survey_poses
+from ruslam.data.robustness import SurveyConfig, robustness_sequence, survey_poses
 
 TINY = dict(width=64, height=48, straights=(3, 2), turn_deg=30.0, laps=1.2, progress=False)
 
@@ -68,7 +68,7 @@ def test_variant_renders_once_and_reads_back_with_its_ground_truth(tmp_path):
 def test_lens_distortion_is_rendered_and_written_to_the_calibration(tmp_path):
     """k1: every pixel is rendered along the ray that the distorted camera's model assigns it (projecting the ray
     back lands on the pixel), and the calibration read back carries the coefficients the SLAM undistorts with."""
-    from ruslam.slam.synthetic_sequence import pixel_rays
+    from ruslam.data.synthetic_sequence import pixel_rays
 
     cfg = SurveyConfig(k1=-0.3, width=64, height=48)
     camera = cfg.camera()

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import compose
 
-from ruslam.slam.readers import Trajectory, read_tum_trajectory, write_tum_trajectory
-from ruslam.slam.robustness import robustness_sequence
-from ruslam.slam.sequence_folder import find_sequences, read_sequence
+from ruslam.data.readers import Trajectory, read_tum_trajectory, write_tum_trajectory
+from ruslam.data.robustness import robustness_sequence
+from ruslam.data.sequence_folder import find_sequences, read_sequence
 
 CALIBRATION = "model: pinhole\nwidth: 64\nheight: 48\nintrinsics: [45.0, 45.0, 31.5, 23.5]\ndistortion: []\n"
 

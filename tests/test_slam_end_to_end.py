@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from ruslam import load_extractor
+from ruslam.data.readers import Sequence, Trajectory
+from ruslam.data.synthetic_sequence import synthetic_sequence
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import SLAMConfig, run
-from ruslam.slam.readers import Sequence, Trajectory
-from ruslam.slam.synthetic_sequence import synthetic_sequence
 
 pytestmark = pytest.mark.slow
 
@@ -119,8 +119,8 @@ def test_orb_keeps_tracking_over_a_washed_out_seafloor(cache):
     """Low-contrast, sparse texture (grey std ~4, sensor noise 2.5 grey levels) through a corner. Before the 1 px blur
     ahead of CLAHE and the PnP-first descriptor fallback, ORB never got past 2 poses here (seeds 3 and 4, measured);
     now seed 4 tracks every frame at 0.26 % of the path (seed 3: 90 % of the frames in 2 maps, 0.26 %)."""
+    from ruslam.data.robustness import robustness_sequence
     from ruslam.slam.conditioning import ImageConditioning
-    from ruslam.slam.robustness import robustness_sequence
 
     seq = robustness_sequence("lowtex", cache_dir=cache, progress=False, seed=4, contrast=0.4, density=0.3, frames=80)
     cfg = SLAMConfig(progress=False, conditioning=ImageConditioning("auto", blur_sigma=1.0))
@@ -148,7 +148,7 @@ def test_xfeat_keeps_tracking_through_a_fast_turn_in_turbid_water(cache):
     With CLAHE on flat frames only and a 0.5 descriptor gate, XFeat lost the track in the first
     corner: 24 of the 45 frames in 2 maps (measured); the evaluation's options (CLAHE on every frame, gate 0.6) keep
     one map."""
-    from ruslam.slam.robustness import robustness_sequence
+    from ruslam.data.robustness import robustness_sequence
 
     seq = robustness_sequence("hard_s5", cache_dir=cache, progress=False, seed=5, step=0.15, turn_deg=10,
                               pitch_deg=48, water="3C", frames=45)
@@ -163,7 +163,7 @@ def test_xfeat_keeps_its_scale_over_low_texture(cache):
     right matches, tracking fell back to PnP on half-wrong matches, and the scale collapsed or held depending on
     floating-point details (BLAS threads). With duplicates inside the noise radius ignored, the scale must hold
     for any thread count."""
-    from ruslam.slam.robustness import SurveyConfig, robustness_sequence, survey_poses
+    from ruslam.data.robustness import SurveyConfig, robustness_sequence, survey_poses
 
     knobs = dict(seed=4, contrast=0.38, density=0.28, frames=60)
     seq = robustness_sequence("lowtex_s4", cache_dir=cache, progress=False, **knobs)

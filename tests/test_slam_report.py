@@ -132,8 +132,8 @@ def test_missing_dataset_names_what_to_download(tmp_path):
 
 def test_euroc_layout_is_table3_with_se3_alignment(tmp_path):
     """A tiny stereo sequence in the EuRoC layout under dataset.root: one APE column per method, SE3 (no scale)."""
+    from ruslam.data.synthetic_sequence import synthetic_sequence
     from ruslam.eval.slam_report import run
-    from ruslam.slam.synthetic_sequence import synthetic_sequence
 
     seq = synthetic_sequence("clear", stereo=True, cache_dir=tmp_path / "cache", num_frames=10, width=160,
                              height=120, focal=112.5, texture_res=512, height_res=300, progress=False)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from slam_fakes import FakeExtractor, FakeSequence
 
+from ruslam.data.readers import Trajectory, read_tum_trajectory
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import SLAMConfig, run
-from ruslam.slam.readers import Trajectory, read_tum_trajectory
 
 
 def ape_ratio(seq, result, alignment):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ruslam.slam.synthetic_sequence import (
+from ruslam.data.synthetic_sequence import (
     DEPTH_SCALE,
     SeafloorConfig,
     circuit_poses,

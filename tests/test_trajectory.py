@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from ruslam.data.readers import Trajectory
 from ruslam.eval.trajectory import evaluate_trajectory
-from ruslam.slam.readers import Trajectory
 
 
 def _helix(n=120):

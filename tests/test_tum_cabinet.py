@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from ruslam.data.sequence_folder import find_sequences, read_sequence
 from ruslam.models.classical import ORB
-from ruslam.slam.sequence_folder import find_sequences, read_sequence
 from ruslam.slam.tracking import TrackingConfig
 
 
@@ -44,9 +44,9 @@ def test_xfeat_with_lighterglue_tracks_the_cabinet(cabinet):
     textured, wide-baseline sequence. With kNN alone: 7 % of the frames in 3 maps (measured, BENCHMARKS.md)."""
     from conftest import compose
 
+    from ruslam.data.readers import Trajectory
     from ruslam.eval.slam_report import slam_config_for, slam_extractors
     from ruslam.eval.trajectory import evaluate_trajectory
-    from ruslam.slam.readers import Trajectory
     from ruslam.slam.system import as_config, run
 
     cfg = compose("evaluate", ["task=slam", "slam.progress=false"])

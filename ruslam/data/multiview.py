@@ -1,6 +1,6 @@
 """The embedded default of ``task=sfm``: a rendered underwater multi-view set of a seafloor patch, known poses.
 
-A survey over a textured seafloor with rocks (`ruslam.slam.synthetic_sequence.make_seafloor`, ray-cast exactly):
+A survey over a textured seafloor with rocks (`ruslam.data.synthetic_sequence.make_seafloor`, ray-cast exactly):
 ``num_views`` downward-looking cameras on a jittered lawn-mower grid over the patch at 1.6-2.0 m altitude, tilted
 up to ``max_tilt_deg`` towards random directions, headings within +-``max_yaw_deg`` of the survey heading, then
 degraded by the pseudo-underwater model (`ruslam.data.synthesis.degrade`, paper eq. 4) for Jerlov ``water`` with
@@ -87,8 +87,8 @@ def render_multiview(cfg: MultiViewConfig | None = None, cache_dir: str | Path |
     out = Path(cache_dir or default_cache_dir()) / f"multiview_{cfg.key()}"
     if (out / "groundtruth.txt").is_file():
         return out
-    from ruslam.slam.camera import Camera  # noqa: PLC0415
-    from ruslam.slam.synthetic_sequence import (  # noqa: PLC0415
+    from ruslam.data.camera import Camera  # noqa: PLC0415
+    from ruslam.data.synthetic_sequence import (  # noqa: PLC0415
         SeafloorConfig,
         make_seafloor,
         pixel_rays,
@@ -133,7 +133,7 @@ def _degrade(rgb: np.ndarray, rng: np.ndarray, cfg: MultiViewConfig, index: int)
     import torch  # noqa: PLC0415
 
     from ruslam.data.synthesis import degrade, image_generator  # noqa: PLC0415
-    from ruslam.slam.synthetic_sequence import WaterLevel  # noqa: PLC0415
+    from ruslam.data.synthetic_sequence import WaterLevel  # noqa: PLC0415
 
     level = WaterLevel(cfg.water, noise_std=cfg.noise_std, blur_length=cfg.blur_length)
     from ruslam.data.water import beta_rgb  # noqa: PLC0415

@@ -26,11 +26,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from ruslam.atomic_files import atomic_path, atomic_write
 from ruslam.config_checks import SLAM_METRICS as METRICS
+from ruslam.data.readers import Trajectory, write_tum_trajectory
 from ruslam.errors import InputError, MissingInput
 from ruslam.eval.trajectory import evaluate_trajectory
 from ruslam.slam import two_view_odometry
 from ruslam.slam.presets import EXTRACTOR_OPTIONS, slam_options
-from ruslam.slam.readers import Trajectory, write_tum_trajectory
 
 log = logging.getLogger(__name__)
 FAIL = "×"

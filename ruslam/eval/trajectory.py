@@ -14,7 +14,7 @@ import numpy as np
 from evo.core import filters, metrics, sync
 from evo.core.trajectory import PoseTrajectory3D
 
-from ruslam.slam.readers import Trajectory
+from ruslam.data.readers import Trajectory
 
 ALIGNMENTS = ("sim3", "se3", "none")
 

@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ruslam.atomic_files import atomic_path
+from ruslam.data.readers import load_image
 from ruslam.errors import InputError, MissingInput
 from ruslam.features.hloc_io import (
     list_feature_names,
@@ -27,7 +28,6 @@ from ruslam.features.hloc_io import (
     write_feature_group,
     write_matches_group,
 )
-from ruslam.slam.readers import load_image
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 

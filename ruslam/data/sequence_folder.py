@@ -12,8 +12,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from ruslam.data.readers import IMAGE_SUFFIXES, Sequence, read_euroc, read_image_folder, read_tum
 from ruslam.errors import MissingInput
-from ruslam.slam.readers import IMAGE_SUFFIXES, Sequence, read_euroc, read_image_folder, read_tum
 
 log = logging.getLogger(__name__)
 FORMATS = ("euroc", "tum", "image_folder")

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ruslam.data.camera import Camera
+from ruslam.data.readers import Sequence, read_euroc
 from ruslam.errors import InputError, MissingInput
-from ruslam.slam.camera import Camera
-from ruslam.slam.readers import Sequence, read_euroc
 
 VERSION = 1  # bump when rendering changes, so stale caches are regenerated
 DEPTH_SCALE = 10000.0  # uint16 range PNG units per metre (0.1 mm; up to 6.5 m)

@@ -17,8 +17,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ruslam.atomic_files import atomic_path
+from ruslam.data.camera import Camera, read_yaml
 from ruslam.errors import InputError, MissingInput
-from ruslam.slam.camera import Camera, read_yaml
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
@@ -110,7 +110,7 @@ def load_image(path: Path) -> np.ndarray:
     return image
 
 
-def pose_matrix(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+def poses_from_quaternions(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     """[N,3] translations + [N,4] quaternions (x, y, z, w) -> [N,4,4]."""
     poses = np.tile(np.eye(4), (len(t), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(q_xyzw).as_matrix()
@@ -142,7 +142,7 @@ def _numeric_rows(path: Path, delimiter: str | None, min_cols: int) -> np.ndarra
 def read_tum_trajectory(path: str | Path) -> Trajectory:
     """TUM format ``timestamp tx ty tz qx qy qz qw`` (space or comma separated)."""
     a = _numeric_rows(Path(path), None, 8)
-    return Trajectory(a[:, 0], pose_matrix(a[:, 1:4], a[:, 4:8]))
+    return Trajectory(a[:, 0], poses_from_quaternions(a[:, 1:4], a[:, 4:8]))
 
 
 def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> None:
@@ -162,7 +162,7 @@ def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> None:
 def read_euroc_groundtruth(path: str | Path, T_body_cam: np.ndarray | None = None) -> Trajectory:
     """ASL ground truth csv (``t_ns, p xyz, q wxyz, ...``) -> T_world_cam = T_world_body · T_body_cam."""
     a = _numeric_rows(Path(path), ",", 8)
-    poses = pose_matrix(a[:, 1:4], a[:, [5, 6, 7, 4]])
+    poses = poses_from_quaternions(a[:, 1:4], a[:, [5, 6, 7, 4]])
     if T_body_cam is not None:
         poses = poses @ T_body_cam
     return Trajectory(a[:, 0] * 1e-9, poses)
@@ -274,7 +274,7 @@ def read_aqualoc(root: str | Path, site: str = "harbor", groundtruth: str | Path
         if index.min() < 0 or index.max() >= len(timestamps):
             raise InputError(f"Ground truth {groundtruth} indexes image {index.max()} but {list_path} lists "
                              f"{len(timestamps)} images.")
-        gt = Trajectory(timestamps[index], pose_matrix(a[:, 1:4], a[:, 4:8]))
+        gt = Trajectory(timestamps[index], poses_from_quaternions(a[:, 1:4], a[:, 4:8]))
     return Sequence(name=name or root.name, cameras=[camera], timestamps=timestamps,
                     image_paths=[[folder / n] for n in names], groundtruth=gt)
 

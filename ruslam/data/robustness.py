@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ruslam.slam.camera import Camera
-from ruslam.slam.readers import Sequence, read_euroc
-from ruslam.slam.synthetic_sequence import (
+from ruslam.data.camera import Camera
+from ruslam.data.readers import Sequence, read_euroc
+from ruslam.data.synthetic_sequence import (
     SeafloorConfig,
     WaterLevel,
     _imwrite,
