@@ -13,7 +13,8 @@ from ruslam.models.export import export_weights, load_uwnet
 from ruslam.models.extractor import cell_logits_to_heatmap, decode_sparse
 from ruslam.models.uwnet_extractor import SHIPPED_WEIGHTS, UWNetExtractor
 from ruslam.models.uwnet_xfeat_student import XFeatStudent, subcell_logits, subcell_targets
-from ruslam.train import load_initial_weights, train
+from ruslam.train import train
+from ruslam.training.common import load_initial_weights
 
 
 def _images(h=72, w=104, n=2):

@@ -12,7 +12,8 @@ from hydra.utils import instantiate
 
 from ruslam import load_extractor
 from ruslam.models.export import export_weights, load_uwnet
-from ruslam.train import format_report, load_initial_weights, train
+from ruslam.train import train
+from ruslam.training.common import format_report, load_initial_weights
 from ruslam.training.module import NonFiniteLossError
 
 TINY = ["model=uwnet", "data.num_images=6", "data.height=64", "data.width=96", "datamodule.image_size=null",

@@ -62,7 +62,7 @@ def test_export_and_load_extractor_round_trip(tmp_path):
 
 def test_fine_tuning_may_add_the_keypoint_neighbourhood_block_only(tmp_path):
     from ruslam.errors import InputError
-    from ruslam.train import load_initial_weights
+    from ruslam.training.common import load_initial_weights
 
     start = XFeatStudent()
     with torch.no_grad():

@@ -17,6 +17,7 @@ Each DDP rank writes its own shards through `CacheWriter` (a `BasePredictionWrit
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
 import socket
@@ -34,10 +35,19 @@ from torch.utils.data import DataLoader, Dataset
 from ruslam.atomic_files import atomic_write
 from ruslam.data.rgbd_sample import sample_image
 from ruslam.errors import InputError, MissingInput
-from ruslam.models.teachers import module_fingerprint
 
 MANIFEST = "teacher.json"
 KEYS = ("keypoint_logits", "dense_descriptors", "global_descriptor")
+
+
+def module_fingerprint(module: torch.nn.Module, extra: dict | None = None) -> str:
+    """sha256 of a module's architecture (repr), every weight and buffer (so a VLAD codebook too) and `extra`."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps({"module": repr(module), "extra": extra or {}}, sort_keys=True, default=str).encode())
+    for key, value in sorted(module.state_dict().items()):
+        digest.update(key.encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
 
 
 def group_name(image_id: str) -> str:

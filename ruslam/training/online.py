@@ -133,7 +133,7 @@ def _held_out(module, batches, dtype, device) -> dict[str, float]:
 
 def train_online(cfg: DictConfig) -> float:
     """Train from the composed training config (its ``online`` block) and return the held-out total loss."""
-    from ruslam.train import format_report, load_initial_weights  # noqa: PLC0415
+    from ruslam.training.common import format_report, load_initial_weights  # noqa: PLC0415
 
     opts = {**DEFAULTS, **OmegaConf.to_container(cfg.online, resolve=True)}
     torch.manual_seed(int(cfg.seed))

@@ -7,8 +7,6 @@ Offline default: XFeat + VLAD (`conf/teacher/xfeat_vlad.yaml`); paper: SuperPoin
 
 from __future__ import annotations
 
-import hashlib
-import json
 from pathlib import Path
 
 import torch
@@ -40,16 +38,3 @@ class Teacher(nn.Module):
         """Fit what depends on the training data (the VLAD codebook, saved beside the cache) before caching."""
         if hasattr(self.global_head, "prepare"):
             self.global_head.prepare(self.local, dataset, cache_dir)
-
-    def fingerprint(self, extra: dict | None = None) -> str:
-        return module_fingerprint(self, extra)
-
-
-def module_fingerprint(module: nn.Module, extra: dict | None = None) -> str:
-    """sha256 of a module's architecture (repr), every weight and buffer (so a VLAD codebook too) and `extra`."""
-    digest = hashlib.sha256()
-    digest.update(json.dumps({"module": repr(module), "extra": extra or {}}, sort_keys=True, default=str).encode())
-    for key, value in sorted(module.state_dict().items()):
-        digest.update(key.encode())
-        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()
