@@ -30,8 +30,8 @@ from torchvision.ops import deform_conv2d
 from ruslam import load_extractor
 from ruslam.models.deform_conv import deform_conv2d_fast
 from ruslam.models.export import export_weights
+from ruslam.models.pretrained.superpoint import SuperPoint, SuperPointNet
 from ruslam.models.rotation_tta import C4Augmented
-from ruslam.models.teachers.superpoint import SuperPoint, SuperPointNet
 from ruslam.models.uwnet import UWNet
 from ruslam.models.uwnet_extractor import SHIPPED_WEIGHTS, UWNetExtractor
 

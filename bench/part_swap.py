@@ -22,8 +22,8 @@ from ruslam.cli import run_cli
 from ruslam.evaluate import evaluate
 from ruslam.models import registry
 from ruslam.models.extractor import Extractor, sample_descriptors, to_float_rgb
-from ruslam.models.peers import ALIKED
-from ruslam.models.teachers.xfeat import STRIDE, XFeat, pad_to_multiple
+from ruslam.models.pretrained.aliked_disk import ALIKED
+from ruslam.models.pretrained.xfeat import STRIDE, XFeat, pad_to_multiple
 from ruslam.models.uwnet_extractor import UWNetExtractor
 
 

@@ -5,7 +5,7 @@
 Every stage runs round-robin on the same 480x640 image (machine load hits them alike); medians are reported with
 their share of XFeat's full extract measured in the same run. The student's stages are the ones of
 `XFeatStudent.forward` (backbone shared with XFeat, the added residual blocks, NetVLAD) and the sparse decoding of
-`UWNetExtractor`; XFeat's are those of `ruslam.models.teachers.xfeat.XFeat.extract`. The target is UWNet extract
+`UWNetExtractor`; XFeat's are those of `ruslam.models.pretrained.xfeat.XFeat.extract`. The target is UWNet extract
 <= 1.3x XFeat extract (bench/extractor.py); this script says which block to make cheaper.
 """
 

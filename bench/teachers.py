@@ -20,10 +20,10 @@ import torch
 
 from ruslam import load_extractor
 from ruslam.data.teacher_cache import build_cache
-from ruslam.models.teachers import Teacher
-from ruslam.models.teachers.superpoint import SuperPointNet, SuperPointTeacher
-from ruslam.models.teachers.vlad import VLAD
-from ruslam.models.teachers.xfeat import XFeatTeacher
+from ruslam.models.pretrained import Teacher
+from ruslam.models.pretrained.superpoint import SuperPointNet, SuperPointTeacher
+from ruslam.models.pretrained.vlad import VLAD
+from ruslam.models.pretrained.xfeat import XFeatTeacher
 
 H, W = 480, 640
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from ruslam.models.extractor import cell_logits_to_heatmap
-from ruslam.models.teachers.aliked_keypoints import pool_score_map
+from ruslam.models.pretrained.aliked_keypoints import pool_score_map
 
 
 def test_pooled_target_puts_each_peak_score_on_its_pixel_and_the_rest_on_the_dustbin():

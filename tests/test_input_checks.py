@@ -26,7 +26,7 @@ BAD_IMAGES = {
 @pytest.fixture(scope="module", params=sorted(EXTRACTORS))
 def extractor(request):
     if request.param == "superpoint":  # its weights cannot be downloaded here; random ones check the input the same
-        from ruslam.models.teachers.superpoint import SuperPoint, SuperPointNet
+        from ruslam.models.pretrained.superpoint import SuperPoint, SuperPointNet
 
         return SuperPoint(net=SuperPointNet())
     try:

@@ -81,7 +81,7 @@ def patch_netvlad_state(num_clusters=4, pca_dim=16, seed=0):
 def test_netvlad_teacher_loads_the_public_layout_and_computes_the_pipeline(tmp_path):
     import torchvision
 
-    from ruslam.models.teachers.netvlad import NetVLADTeacher
+    from ruslam.models.pretrained.netvlad import NetVLADTeacher
 
     state = patch_netvlad_state()
     path = tmp_path / "pittsburgh_WPCA16.pth.tar"
@@ -104,7 +104,7 @@ def test_netvlad_teacher_loads_the_public_layout_and_computes_the_pipeline(tmp_p
 
 
 def test_netvlad_teacher_names_missing_weights(tmp_path):
-    from ruslam.models.teachers.netvlad import NetVLADTeacher
+    from ruslam.models.pretrained.netvlad import NetVLADTeacher
 
     state = patch_netvlad_state()
     del state["WPCA.0.bias"]

@@ -6,7 +6,7 @@ import torch
 import torch.nn as nn
 
 from ruslam import load_extractor
-from ruslam.models.teachers.superpoint import SuperPoint, SuperPointTeacher
+from ruslam.models.pretrained.superpoint import SuperPoint, SuperPointTeacher
 from ruslam.models.weights import resolve_weights, sha256_of
 
 # Key names and shapes of magicleap/SuperPointPretrainedNetwork superpoint_v1.pth (from its demo_superpoint.py).

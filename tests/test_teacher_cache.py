@@ -23,8 +23,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from ruslam.models.teachers import Teacher
-from ruslam.models.teachers.vlad import VLAD
+from ruslam.models.pretrained import Teacher
+from ruslam.models.pretrained.vlad import VLAD
 
 
 class TinyLocal(nn.Module):

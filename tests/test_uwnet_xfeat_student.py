@@ -7,8 +7,8 @@ from conftest import compose
 
 from ruslam import load_extractor
 from ruslam.models.export import export_weights, load_uwnet
-from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
-from ruslam.models.teachers.xfeat import XFeatTeacher
+from ruslam.models.pretrained.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
+from ruslam.models.pretrained.xfeat import XFeatTeacher
 from ruslam.models.uwnet_xfeat_student import XFeatStudent, with_teacher_detector, without_descriptor_residual
 from ruslam.train import train
 

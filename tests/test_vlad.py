@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from ruslam.models.teachers.vlad import VLAD, fit_codebook, save_codebook, vlad_aggregate
+from ruslam.models.pretrained.vlad import VLAD, fit_codebook, save_codebook, vlad_aggregate
 
 ROOT = Path(__file__).resolve().parents[1]
 

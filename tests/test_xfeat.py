@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from ruslam import load_extractor
-from ruslam.models.teachers.xfeat import XFeatTeacher
+from ruslam.models.pretrained.xfeat import XFeatTeacher
 
 
 def textured_image(h=160, w=224, seed=0) -> np.ndarray:

@@ -18,13 +18,13 @@ EXTRACTORS = {
     "uwnet_xfeat": "ruslam.models.uwnet_extractor:UWNetExtractor",
     "uwnet_xfeat_s4": "ruslam.models.uwnet_extractor:UWNetFineCellExtractor",
     "uwnet_mobilenet": "ruslam.models.uwnet_extractor:UWNetMobileNetExtractor",
-    "xfeat": "ruslam.models.teachers.xfeat:XFeat",
-    "superpoint": "ruslam.models.teachers.superpoint:SuperPoint",
-    "aliked": "ruslam.models.peers:ALIKED",  # ALIKED-n16rot
-    "aliked-n16": "ruslam.models.peers:ALIKEDN16",
-    "aliked-t16": "ruslam.models.peers:ALIKEDT16",
-    "aliked-n32": "ruslam.models.peers:ALIKEDN32",
-    "disk": "ruslam.models.peers:DISK",
+    "xfeat": "ruslam.models.pretrained.xfeat:XFeat",
+    "superpoint": "ruslam.models.pretrained.superpoint:SuperPoint",
+    "aliked": "ruslam.models.pretrained.aliked_disk:ALIKED",  # ALIKED-n16rot
+    "aliked-n16": "ruslam.models.pretrained.aliked_disk:ALIKEDN16",
+    "aliked-t16": "ruslam.models.pretrained.aliked_disk:ALIKEDT16",
+    "aliked-n32": "ruslam.models.pretrained.aliked_disk:ALIKEDN32",
+    "disk": "ruslam.models.pretrained.aliked_disk:DISK",
 }
 
 

@@ -41,7 +41,7 @@ FINE_CHANNELS = 32
 
 
 def _pad(image: torch.Tensor) -> torch.Tensor:
-    from ruslam.models.teachers.xfeat import pad_to_multiple  # noqa: PLC0415 (same padding as the teacher)
+    from ruslam.models.pretrained.xfeat import pad_to_multiple  # noqa: PLC0415 (same padding as the teacher)
 
     return pad_to_multiple(image, SIZE_MULTIPLE)
 
@@ -125,7 +125,7 @@ class XFeatStudent(nn.Module):
         self.frozen_batchnorm = frozen_batchnorm  # how it trains, not what it is: not in the weights file's config
         xfeat = XFeatModel()
         if teacher_weights != "none":
-            from ruslam.models.teachers.xfeat import packaged_weights_path  # noqa: PLC0415
+            from ruslam.models.pretrained.xfeat import packaged_weights_path  # noqa: PLC0415
 
             path = teacher_weights or packaged_weights_path()
             xfeat.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
@@ -159,7 +159,7 @@ class XFeatStudent(nn.Module):
     @torch.no_grad()
     def _init_vlad(self, codebook_path: str | None, alpha: float) -> None:
         """Soft assignment exp(-alpha |x - c|^2) around the teacher's raw (not renormalised) k-means centres."""
-        from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, load_codebook  # noqa: PLC0415
+        from ruslam.models.pretrained.vlad import PACKAGED_XFEAT_CODEBOOK, load_codebook  # noqa: PLC0415
 
         path = PACKAGED_XFEAT_CODEBOOK if codebook_path in (None, "packaged") else codebook_path
         c = torch.from_numpy(load_codebook(path, 64, 64))

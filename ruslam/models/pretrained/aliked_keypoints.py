@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ruslam.models.extractor import simple_nms
-from ruslam.models.teachers.xfeat import STRIDE, XFeatTeacher
+from ruslam.models.pretrained.xfeat import STRIDE, XFeatTeacher
 
 EPS = 1e-6
 
@@ -40,7 +40,7 @@ class ALIKEDKeypointTeacher(nn.Module):
 
     def __init__(self, model: str = "aliked-n16rot", nms_radius: int = 2, weights: str | None = None):
         super().__init__()
-        from ruslam.models.peers import ALIKED  # noqa: PLC0415 (optional package: one sentence when it is missing)
+        from ruslam.models.pretrained.aliked_disk import ALIKED  # noqa: PLC0415 (optional package: one sentence when it is missing)
 
         self.aliked = ALIKED(model=model).net  # only its dense score map is used
         self.xfeat = XFeatTeacher(weights)  # `weights`: XFeat's, as in `xfeat_vlad`

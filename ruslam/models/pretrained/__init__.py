@@ -1,8 +1,11 @@
-"""Frozen teachers of the distillation (paper 3.2): a local one (keypoints + dense descriptors) and a global one.
+"""Frozen third-party networks: the teachers of the distillation (paper 3.2) and the baselines UWNet is compared with.
 
-`Teacher` pairs them into the one module the cache runs: image [B, 3, H, W] in [0, 1] ->
-``keypoint_logits`` [B, 65, H/8, W/8], ``dense_descriptors`` [B, D, H/8, W/8], ``global_descriptor`` [B, G].
-Offline default: XFeat + VLAD (`conf/teacher/xfeat_vlad.yaml`); paper: SuperPoint + NetVLAD.
+- `xfeat.py` (XFeat), `superpoint.py` (SuperPoint): each a teacher module and an extractor (`load_extractor`);
+  `aliked_disk.py`: ALIKED and DISK extractors; `aliked_keypoints.py`: ALIKED's score map as a keypoint teacher;
+  `vlad.py`, `netvlad.py`: the global teachers.
+- `Teacher` pairs a local and a global teacher into the one module the cache runs: image [B, 3, H, W] in [0, 1]
+  -> ``keypoint_logits`` [B, 65, H/8, W/8], ``dense_descriptors`` [B, D, H/8, W/8], ``global_descriptor`` [B, G].
+  Offline default: XFeat + VLAD (`conf/teacher/xfeat_vlad.yaml`); paper: SuperPoint + NetVLAD.
 """
 
 from __future__ import annotations

