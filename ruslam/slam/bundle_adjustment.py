@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import scipy.linalg
 from gtsam.symbol_shorthand import X
 
 from ruslam.slam.geometry import CHI2_2DOF
@@ -103,77 +104,142 @@ def observation_chi2(T, Xw, obs, K, K_right=None, T_c0_c1=None) -> np.ndarray:
     return np.where(z > 1e-6, np.sum(res**2, 1), np.inf)
 
 
+def robust_cost(T, Xw, obs, use, K, K_right=None, T_c0_c1=None, sigma: float = 1.0) -> float:
+    """gtsam's error of the projection factors in `use` (observations sorted by pose): the Huber loss of each
+    whitened reprojection error (pixels / sigma, width `HUBER_DELTA`), an observation behind its camera counted as
+    gtsam's projection factor does (the error (2 fx, 2 fx))."""
+    return float(np.sum(_huber_terms(T, Xw, obs, K, K_right, T_c0_c1, sigma, False)[0][use]))
+
+
+def _huber_terms(T, Xw, obs, K, K_right, T_c0_c1, sigma, jacobians=True):
+    """Per observation: Huber loss [O], whitened residual [O, 2], whitened Jacobians (pose [O, 2, 6], point
+    [O, 2, 3]; zero behind the camera) and the Huber weight [O], as gtsam's robust projection factor linearises."""
+    res, Jc, Jx, z = _linearize(T, Xw, obs, K, K_right, T_c0_c1, jacobians)
+    behind = ~(z > 0)  # gtsam's cheirality test: the factor's error is (2 fx, 2 fx), its Jacobians zero
+    if behind.any():
+        fx = np.where(obs[3], K_right[0, 0] if K_right is not None else K[0, 0], K[0, 0])
+        res[behind] = 2.0 * fx[behind, None]
+    res = res / sigma
+    err = np.linalg.norm(res, axis=1)
+    loss = np.where(err <= HUBER_DELTA, 0.5 * err**2, HUBER_DELTA * (err - 0.5 * HUBER_DELTA))
+    if not jacobians:
+        return loss, res
+    Jc, Jx = Jc / sigma, Jx / sigma
+    Jc[behind], Jx[behind] = 0.0, 0.0
+    w = np.where(err <= HUBER_DELTA, 1.0, HUBER_DELTA / np.maximum(err, 1e-300))
+    return loss, res, Jc, Jx, w
+
+
 def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iterations, sigma, should_stop=None):
-    """`iterations` LM steps over the observations in `use` (numpy, points eliminated by the Schur complement)."""
+    """gtsam's Levenberg-Marquardt (`LevenbergMarquardtOptimizer` with default parameters) over the observations
+    in `use`, in numpy with the points eliminated by the Schur complement.
+
+    As gtsam: the cost is the sum of Huber losses of the whitened errors; each iteration linearises once (Huber
+    weights as gtsam's robust noise model reweights), then tries lambda * I (from 1e-5) until a step's model fidelity
+    (cost decrease / decrease of the linearised cost) exceeds 1e-3: x10 on a failed try, /10 on success; it gives up
+    at lambda >= 1e5 or when a step changes the cost by less than 1e-5 of it. `iterations` counts successful steps,
+    and the pass ends when one lowers the cost by <= 1e-5 relative or absolute (gtsam's checkConvergence). Held
+    poses and depth-less points are constants here (gtsam: tight priors, the same solution within 1e-9)."""
     oi, oj = obs[0], obs[1]
     M = len(Xw)
     slot = np.full(len(T), -1)
     slot[~fixed] = np.arange(int((~fixed).sum()))
     nf = int((~fixed).sum())
-    delta = HUBER_DELTA * sigma
     movable = np.bincount(oj[use], minlength=M) >= 2  # others are held (no depth)
     pose_free = slot[oi] >= 0
     cx = np.nonzero(use & pose_free & movable[oj])[0]  # observations coupling a free pose and a free point
     cx = cx[np.argsort(oj[cx], kind="stable")]  # by point, for the chunks of the reduced system
     bounds = np.searchsorted(oi, np.arange(len(T) + 1))
+    free_poses = np.nonzero(~fixed)[0]
+    eye3, eye6 = np.eye(3), np.eye(6)
 
-    def cost_and_terms(T, Xw):
-        res, Jc, Jx, z = _linearize(T, Xw, obs, K, K_right, T_c0_c1)
-        err = np.linalg.norm(res, axis=1)
-        ok = use & (z > 1e-6)
-        rho = np.where(err <= delta, 0.5 * err**2, delta * (err - 0.5 * delta))
-        w = np.where(err <= delta, 1.0, delta / np.maximum(err, 1e-12)) * ok
-        return float(np.sum(rho[ok])), res, Jc, Jx, w
+    def cost_at(T, Xw):
+        return float(np.sum(_huber_terms(T, Xw, obs, K, K_right, T_c0_c1, sigma, False)[0][use]))
 
-    cost, res, Jc, Jx, w = cost_and_terms(T, Xw)
-    lam = 1e-5  # gtsam's LM schedule: lambda * I, x10 on a failed step, /10 on a good one
-    for _ in range(iterations):
+    cost = cost_at(T, Xw)
+    lam = 1e-5  # lambdaInitial
+    done = 0  # gtsam's iterations(): successful steps
+    while done < iterations and cost > 0:
         if should_stop is not None and should_stop():
             break
+        before = cost
+        _, res, Jc, Jx, w = _huber_terms(T, Xw, obs, K, K_right, T_c0_c1, sigma)
+        w = w * use
+        old_linear = 0.5 * float(np.sum(w * np.sum(res**2, 1)))  # gtsam's linear.error(0) (reweighted)
         wJc, wJx = w[:, None, None] * Jc, w[:, None, None] * Jx
         Hcc, gc = np.zeros((nf, 6, 6)), np.zeros((nf, 6))
-        for i in np.nonzero(~fixed)[0]:  # one product per free pose
+        for i in free_poses:  # one product per free pose
             sl = slice(bounds[i], bounds[i + 1])
             Hcc[slot[i]] = wJc[sl].reshape(-1, 6).T @ Jc[sl].reshape(-1, 6)
             gc[slot[i]] = wJc[sl].reshape(-1, 6).T @ res[sl].ravel()
         Hxx = _sum_blocks(_outer(wJx, Jx), oj, M)
         gx = np.where(movable[:, None], _sum_blocks(np.sum(wJx * res[:, :, None], 1), oj, M), 0.0)
         Hxc = _outer(wJx[cx], Jc[cx])  # [C, 3, 6]
-        while True:
-            # + 1e-9 of the trace: a point seen along parallel rays has no depth information (singular block)
-            Hxx_d = Hxx + (lam + 1e-9 * (1.0 + np.trace(Hxx, axis1=1, axis2=2)))[:, None, None] * np.eye(3)
-            Hxx_d[~movable] = np.eye(3)
-            Hxx_inv = np.linalg.inv(Hxx_d)
-            dc = np.zeros((nf, 6))
-            if nf:
-                S, rhs = _reduced_camera_system(Hxc, oj[cx], slot[oi[cx]], Hxx_inv, gx, nf)
-                S = -S
-                for k in range(nf):
-                    S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hcc[k] + lam * np.eye(6)
-                S[np.diag_indices(6 * nf)] += 1e-9 * (1.0 + np.trace(S) / (6 * nf))
-                try:
-                    dc = np.linalg.solve(S, rhs - gc.ravel()).reshape(nf, 6)
-                except np.linalg.LinAlgError:
-                    return T, Xw
-            back = _sum_blocks(np.sum(Hxc * dc[slot[oi[cx]], None, :], 2), oj[cx], M)
-            dx = -np.einsum("mij,mj->mi", Hxx_inv, gx + back)
-            T_new = T.copy()
-            for i in np.nonzero(~fixed)[0]:
-                T_new[i] = se3_exp(dc[slot[i]]) @ T[i]
-            X_new = Xw + dx
-            new_cost, *terms = cost_and_terms(T_new, X_new)
-            if new_cost <= cost:
-                improvement = cost - new_cost
+        while True:  # gtsam's tryLambda until it returns true
+            success = stop = False
+            step = _damped_step(Hcc, gc, Hxx, gx, Hxc, cx, oj, slot, oi, movable, lam, nf, eye3, eye6)
+            if step is not None:
+                dc, dx = step
+                dpose = np.zeros((len(T), 6))
+                dpose[free_poses] = dc
+                moved = np.einsum("oij,oj->oi", Jc, dpose[oi]) + np.einsum("oij,oj->oi", Jx, dx[oj])
+                new_linear = 0.5 * float(np.sum(w * np.sum((res + moved) ** 2, 1)))
+                linear_change = old_linear - new_linear
+                if linear_change >= 0:
+                    T_new = T.copy()
+                    for i in free_poses:
+                        T_new[i] = se3_exp(dpose[i]) @ T[i]
+                    X_new = Xw + dx
+                    new_cost = cost_at(T_new, X_new)
+                    change = cost - new_cost
+                    if linear_change > np.finfo(float).eps * old_linear:
+                        success = change / linear_change > 1e-3  # minModelFidelity
+                    stop = abs(change) < 1e-5 * cost  # relativeErrorTol: not worth larger lambdas
+            if success:
                 T, Xw, cost = T_new, X_new, new_cost
-                res, Jc, Jx, w = terms
                 lam /= 10
+                done += 1
+                break
+            if stop:
                 break
             lam *= 10
-            if lam > 1e5:
-                return T, Xw
-        if improvement <= 1e-5 * cost or improvement <= 1e-5:  # gtsam's relative and absolute tolerances
+            if lam >= 1e5:  # lambdaUpperBound: gtsam gives up
+                break
+        decrease = before - cost
+        if decrease <= 1e-5 or decrease / before <= 1e-5:  # checkConvergence (an unchanged cost included)
             break
     return T, Xw
+
+
+def _damped_step(Hcc, gc, Hxx, gx, Hxc, cx, oj, slot, oi, movable, lam, nf, eye3, eye6):
+    """The solution (pose steps [nf, 6], point steps [M, 3]) of (H + lam I) d = -g by the Schur complement, or
+    None when the damped system is not positive definite (gtsam's Cholesky fails: a failed try)."""
+    M = len(Hxx)
+    Hxx_d = Hxx + lam * eye3
+    Hxx_d[~movable] = eye3
+    try:
+        L = np.linalg.cholesky(Hxx_d)
+    except np.linalg.LinAlgError:
+        return None
+    Linv = np.linalg.inv(L)
+    Hxx_inv = np.swapaxes(Linv, 1, 2) @ Linv
+    dc = np.zeros((nf, 6))
+    if nf:
+        S, rhs = _reduced_camera_system(Hxc, oj[cx], slot[oi[cx]], Hxx_inv, gx, nf)
+        S = -S
+        for k in range(nf):
+            S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hcc[k] + lam * eye6
+        try:
+            c = scipy.linalg.cho_factor(S, check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        dc = scipy.linalg.cho_solve(c, rhs - gc.ravel(), check_finite=False).reshape(nf, 6)
+    back = _sum_blocks(np.sum(Hxc * dc[slot[oi[cx]], None, :], 2), oj[cx], M)
+    dx = -np.einsum("mij,mj->mi", Hxx_inv, gx + back)
+    dx[~movable] = 0.0
+    if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dx))):
+        return None
+    return dc, dx
 
 
 def _reduced_camera_system(Hxc, point, slot, Hxx_inv, gx, nf, max_elements: int = 2_000_000):
