@@ -93,6 +93,22 @@ def test_local_bundle_adjustment_lowers_reprojection_error(solver):
     assert np.abs(P[4][:3, 3] - poses[4][:3, 3]).max() < 0.02
 
 
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_monocular_bundle_adjustment_with_one_held_pose_keeps_the_scale(solver):
+    """One held pose leaves the scale free: the cost is the same at any scale about that camera, so the solution
+    keeps the input's spread of camera centres (not wherever LM drifted) and still fits the observations."""
+    poses, noisy, Xw, Xn, oi, oj, ouv, orr = _ba_problem(stereo=False)
+    fixed = np.array([True, False, False, False, False])
+    centres = lambda P: np.stack([inverse_pose(T)[:3, 3] for T in P])  # noqa: E731
+    P, pts, _ = bundle_adjustment(noisy, fixed, Xn, oi, oj, ouv, K, solver=solver)
+    spread = lambda P: np.linalg.norm(centres(P)[1:] - centres(P)[0], axis=1).sum()  # noqa: E731
+    assert spread(P) == pytest.approx(spread(noisy), rel=1e-9)
+    assert _rmse(P, pts, oi, oj, ouv, orr) < 0.8
+    # the shape is right: up to that scale, the centres are the true ones
+    s = spread(poses) / spread(P)
+    assert np.abs(s * centres(P) - centres(poses)).max() < 0.02
+
+
 def test_schur_solver_takes_a_free_pose_without_observations():
     """A free keyframe whose observations were all dropped couples no point (seen on TUM fr3 cabinet): it stays
     where it is, and the points still move."""

@@ -67,9 +67,28 @@ def bundle_adjustment(
         if stage < len(iterations) - 1:
             inlier &= observation_chi2(T, Xw, obs, K, K_right, T_c0_c1) < chi2
     T[fixed] = poses[fixed]
+    if np.count_nonzero(fixed) == 1 and not obs_right.any():
+        T, Xw = _keep_scale(poses, T, Xw, fixed)
     inlier = np.empty(len(order), bool)
     inlier[order] = observation_chi2(T, Xw, obs, K, K_right, T_c0_c1) < chi2
     return T, Xw, inlier
+
+
+def _keep_scale(poses, T, Xw, fixed):
+    """A monocular BA with one held pose leaves the scale free (the cost is invariant to scaling about that camera),
+    and LM drifts along it (16x in one local BA of a young forward-moving map): the solution scaled about the held
+    camera back to the input's spread of camera centres."""
+    centres = lambda P: -np.einsum("nji,nj->ni", P[:, :3, :3], P[:, :3, 3])  # noqa: E731
+    anchor = centres(poses[fixed])[0]
+    before = np.linalg.norm(centres(poses[~fixed]) - anchor, axis=1).sum()
+    after = np.linalg.norm(centres(T[~fixed]) - anchor, axis=1).sum()
+    s = before / after if after > 1e-12 else 1.0
+    if not np.isfinite(s) or s <= 0 or abs(s - 1.0) < 1e-12:
+        return T, Xw
+    T = T.copy()
+    c = anchor + s * (centres(T[~fixed]) - anchor)
+    T[~fixed, :3, 3] = -np.einsum("nij,nj->ni", T[~fixed, :3, :3], c)
+    return T, anchor + s * (Xw - anchor)
 
 
 def _linearize(T, Xw, obs, K, K_right=None, T_c0_c1=None, jacobians: bool = True):
