@@ -129,6 +129,22 @@ def test_pairs_and_matches_read_back_with_hlocs_reader(image_dir, tmp_path):
     assert len(unrelated) < len(m) / 3
 
 
+def test_an_image_without_keypoints_is_written_and_matched(tmp_path):
+    """A blank frame gives ORB no keypoint: its group holds empty arrays of the right shapes, and matching works."""
+    root = tmp_path / "blank"
+    root.mkdir()
+    cv2.imwrite(str(root / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    cv2.imwrite(str(root / "b.png"), textured()[..., ::-1])
+    feats, pairs, matches = tmp_path / "f.h5", tmp_path / "pairs.txt", tmp_path / "m.h5"
+    features_main(["extract", str(root), str(feats), "--extractor", "orb"])
+    with h5py.File(feats, "r") as fd:
+        assert fd["a.png/keypoints"].shape == (0, 2) and fd["a.png/descriptors"].shape == (32, 0)
+        assert fd["b.png/descriptors"].shape[0] == 32 and fd["b.png/descriptors"].shape[1] > 0
+    features_main(["pairs", str(root), str(pairs), "--exhaustive"])
+    features_main(["match", str(feats), str(pairs), str(matches)])
+    assert len(hloc_matches(matches, "a.png", "b.png")[0]) == 0
+
+
 def test_pairs_sequential_and_retrieval():
     names = [f"{i}.png" for i in range(6)]
     assert make_pairs(names, window=2) == [("0.png", "1.png"), ("0.png", "2.png"), ("1.png", "2.png"),

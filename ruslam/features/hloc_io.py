@@ -44,7 +44,8 @@ def write_feature_group(fd: h5py.File, name: str, pred: dict, image_size: tuple[
         desc = desc.astype(np.float16 if half else np.float32)
     grp.create_dataset("keypoints", data=np.asarray(pred["keypoints"], np.float32).reshape(-1, 2))
     grp.create_dataset("scores", data=np.asarray(pred["scores"]).astype(np.float16 if half else np.float32))
-    grp.create_dataset("descriptors", data=np.ascontiguousarray(desc.reshape(len(desc), -1).T))
+    width = desc.shape[-1] if desc.ndim == 2 else 0  # an image without keypoints: [N=0, D] or an empty array
+    grp.create_dataset("descriptors", data=np.ascontiguousarray(desc.reshape(len(desc), width).T))
     grp.create_dataset("image_size", data=np.asarray(image_size, np.int64))
     if pred.get("global_descriptor") is not None:
         grp.create_dataset("global_descriptor",
