@@ -40,11 +40,21 @@ def check(cfg: DictConfig) -> None:
     from ruslam.features.pipeline import list_images  # noqa: PLC0415
 
     check_extractors(cfg)
+    task = cfg.task
+    if task.get("max_keypoints") is not None and int(task.max_keypoints) < 1:
+        raise InputError(f"task.max_keypoints must be >= 1 (null: no cap); got {task.max_keypoints}.")
+    if task.get("resize_max") is not None and int(task.resize_max) < 16:
+        raise InputError(f"task.resize_max must be >= 16 pixels (null: images as they are); got {task.resize_max}.")
     root = cfg.dataset.get("root")
     if root is not None:
-        list_images(Path(str(root)).expanduser(), int(cfg.dataset.get("every") or 1))
-    if cfg.task.matcher not in ("nn", "lightglue"):
-        raise InputError(f"task.matcher must be 'nn' or 'lightglue', got {cfg.task.matcher!r}.")
+        list_images(Path(str(root)).expanduser(), _every(cfg.dataset))
+    if task.matcher not in ("nn", "lightglue"):
+        raise InputError(f"task.matcher must be 'nn' or 'lightglue', got {task.matcher!r}.")
+
+
+def _every(dataset: DictConfig) -> int:
+    every = dataset.get("every")
+    return 1 if every is None else int(every)  # 0 is refused by list_images, not read as 1
 
 
 # ------------------------------------------------------------------------------------------------------ camera
@@ -290,7 +300,7 @@ def run(cfg: DictConfig) -> dict:
         if not image_dir.is_dir():
             raise MissingInput(f"dataset.root={dataset.root}: no such folder.")
         title = dataset.get("label") or image_dir.name
-    every = int(dataset.get("every") or 1)
+    every = _every(dataset)
     names = list_images(image_dir, every)
     if every > 1:
         title += f", every {every}rd image" if every == 3 else f", every {every}th image"
