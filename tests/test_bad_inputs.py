@@ -1,9 +1,11 @@
 """Every row of docs/ERRORS.md, checked against what the code now does.
 
-A command row (`python train.py ...`, `python evaluate.py ...`) must exit 2 with exactly one stderr line,
+A command row (`python train.py ...`, `python evaluate.py ...`, `python -m ruslam.features ...`) must exit 2 with
+exactly one stderr line,
 ``error: <the documented sentence>``, no traceback and no file written; a Python row must raise
 `ruslam.errors.InputError` with the documented sentence. In the table, ``$TMP`` is a scratch folder holding
-``empty/`` (an empty folder), ``not_weights.pt`` and ``not_a_mat.mat`` (text files), and ``…`` stands for any text
+``empty/`` (an empty folder), ``images/`` (``a.png``, ``b.png``), ``pairs.txt`` (``a.png b.png``),
+``bad_pairs.txt`` (``a.png``), ``not_weights.pt`` and ``not_a_mat.mat`` (text files), and ``…`` stands for any text
 (lists that grow when an extractor is registered). The fast test runs the command rows in this process through
 the same `run_cli`; the slow one runs the real entry points in subprocesses.
 """
@@ -16,6 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from conftest import ROOT, compose
@@ -33,7 +36,9 @@ def table_rows() -> list[tuple[str, str, str]]:
 
 
 ROWS = table_rows()
-COMMANDS = [r for r in ROWS if r[1].startswith("python ")]
+FEATURES = "python -m ruslam.features "
+COMMANDS = [r for r in ROWS if r[1].startswith("python ") and not r[1].startswith(FEATURES)]
+FEATURE_COMMANDS = [r for r in ROWS if r[1].startswith(FEATURES)]
 CALLS = [r for r in ROWS if not r[1].startswith("python ")]
 
 
@@ -45,6 +50,11 @@ def matches(documented: str, actual: str, tmp: Path) -> bool:
 @pytest.fixture
 def scratch(tmp_path, monkeypatch) -> Path:
     (tmp_path / "empty").mkdir()
+    (tmp_path / "images").mkdir()
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(tmp_path / "images" / name), np.random.default_rng(0).integers(0, 256, (64, 64, 3), np.uint8))
+    (tmp_path / "pairs.txt").write_text("a.png b.png\n")
+    (tmp_path / "bad_pairs.txt").write_text("a.png\n")
     (tmp_path / "not_weights.pt").write_text("not a torch file\n")
     (tmp_path / "not_a_mat.mat").write_text("not a MATLAB file\n")
     for var in ("EUROC_ROOT", "TUM_ROOT", "AQUALOC_HARBOR_ROOT", "AQUALOC_ARCHAEO_ROOT", "RUSLAM_DEBUG"):
@@ -81,6 +91,20 @@ def test_command_row_in_process(number, command, message, scratch, capsys):
     assert [p for p in _written(out)] == [], "a bad input left files behind"
 
 
+@pytest.mark.parametrize(("number", "command", "message"), FEATURE_COMMANDS, ids=[r[0] for r in FEATURE_COMMANDS])
+def test_features_row_in_process(number, command, message, scratch, capsys):
+    from ruslam.features.__main__ import main
+
+    before = _written(scratch)
+    with pytest.raises(SystemExit) as exit_info:
+        main(shlex.split(command.replace("$TMP", str(scratch)))[3:])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2
+    assert err.count("\n") == 1 and err.startswith("error: "), err
+    assert matches(message, err[len("error: "):].rstrip("\n"), scratch), err
+    assert _written(scratch) == before, "a bad input left files behind"
+
+
 @pytest.mark.parametrize(("number", "call", "message"), CALLS, ids=[r[0] for r in CALLS])
 def test_python_row(number, call, message, scratch):
     from ruslam import load_extractor
@@ -98,12 +122,15 @@ def test_python_row(number, call, message, scratch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("number", "command", "message"), COMMANDS, ids=[r[0] for r in COMMANDS])
+@pytest.mark.parametrize(("number", "command", "message"), COMMANDS + FEATURE_COMMANDS,
+                         ids=[r[0] for r in COMMANDS + FEATURE_COMMANDS])
 def test_command_row_through_the_entry_point(number, command, message, scratch):
     words = shlex.split(command.replace("$TMP", str(scratch)))
     run_dir = scratch / "run"
-    done = subprocess.run([sys.executable, *words[1:], f"hydra.run.dir={run_dir}"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
+    hydra = [] if command.startswith(FEATURES) else [f"hydra.run.dir={run_dir}"]
+    before = _written(scratch)
+    done = subprocess.run([sys.executable, *words[1:], *hydra], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
     assert done.returncode == 2, done.stderr[-2000:]
     assert "Traceback" not in done.stderr
     lines = done.stderr.splitlines()
@@ -111,6 +138,7 @@ def test_command_row_through_the_entry_point(number, command, message, scratch):
     assert matches(message, lines[0][len("error: "):], scratch), lines[0]
     # Hydra's own record of the run (.hydra/ and the job log) is all that may exist
     assert [p for p in _written(run_dir) if not (p.startswith(".hydra") or p.endswith(".log"))] == []
+    assert [p for p in _written(scratch) if p not in before and not p.startswith("run")] == []
 
 
 def test_config_checks_run_before_torch_is_imported(tmp_path):
