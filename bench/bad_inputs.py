@@ -20,7 +20,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_bad_inputs import COMMANDS  # noqa: E402 (the table's own parser)
+from test_bad_inputs import COMMANDS, FEATURE_COMMANDS, make_scratch  # noqa: E402 (the table's own parser)
 
 BASELINE = "import torch, torchvision, pytorch_lightning"
 
@@ -37,19 +37,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", help="comma-separated row numbers (default: every command row)")
     args = parser.parse_args()
-    rows = [r for r in COMMANDS if not args.rows or r[0] in args.rows.split(",")]
+    rows = [r for r in COMMANDS + FEATURE_COMMANDS if not args.rows or r[0] in args.rows.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        (tmp / "empty").mkdir()
-        (tmp / "not_weights.pt").write_text("not a torch file\n")
-        (tmp / "not_a_mat.mat").write_text("not a MATLAB file\n")
+        make_scratch(tmp)
         baseline, _ = timed([sys.executable, "-c", BASELINE], tmp)
         print(f"baseline ({BASELINE}): {baseline:.2f} s\n")
         print("| # | command | exit | seconds | ratio to baseline |\n|---|---|---|---|---|")
         worst = 0.0
         for number, command, _ in rows:
             words = shlex.split(command.replace("$TMP", str(tmp)))
-            seconds, code = timed([sys.executable, *words[1:], f"hydra.run.dir={tmp / 'run'}"], tmp)
+            hydra = [] if words[1] == "-m" else [f"hydra.run.dir={tmp / 'run'}"]
+            seconds, code = timed([sys.executable, *words[1:], *hydra], tmp)
             worst = max(worst, seconds)
             print(f"| {number} | `{command}` | {code} | {seconds:.2f} | x{seconds / baseline:.2f} |")
         again, _ = timed([sys.executable, "-c", BASELINE], tmp)

@@ -47,8 +47,8 @@ def matches(documented: str, actual: str, tmp: Path) -> bool:
     return re.fullmatch(pattern, actual, re.DOTALL) is not None
 
 
-@pytest.fixture
-def scratch(tmp_path, monkeypatch) -> Path:
+def make_scratch(tmp_path: Path) -> None:
+    """The files the table's ``$TMP`` holds (shared with bench/bad_inputs.py)."""
     (tmp_path / "empty").mkdir()
     (tmp_path / "images").mkdir()
     for name in ("a.png", "b.png"):
@@ -57,6 +57,11 @@ def scratch(tmp_path, monkeypatch) -> Path:
     (tmp_path / "bad_pairs.txt").write_text("a.png\n")
     (tmp_path / "not_weights.pt").write_text("not a torch file\n")
     (tmp_path / "not_a_mat.mat").write_text("not a MATLAB file\n")
+
+
+@pytest.fixture
+def scratch(tmp_path, monkeypatch) -> Path:
+    make_scratch(tmp_path)
     for var in ("EUROC_ROOT", "TUM_ROOT", "AQUALOC_HARBOR_ROOT", "AQUALOC_ARCHAEO_ROOT", "RUSLAM_DEBUG"):
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setenv("RUSLAM_CACHE", str(tmp_path / "cache"))
