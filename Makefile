@@ -37,7 +37,8 @@ evaluate: $(STAMP)
 	$(PY) evaluate.py task=synthesis
 
 # The benchmarks that run with their defaults. The others take what they measure as an argument:
-# keypoint_shift.py IMAGE, scale_drift.py VARIANT, part_swap.py task=matching ..., rgbd_matches.py TUM_FOLDER.
+# keypoint_shift.py IMAGE, scale_drift.py VARIANT, part_swap.py task=matching ..., rgbd_matches.py TUM_FOLDER,
+# ba_regression.py DATA_ROOT; fine_cells_device.sh is the GPU training run (docs/finer_cells.md).
 BENCHES := synthetic_sequence procedural synthesis teachers extractor student_profile bad_inputs slam \
 	bundle_adjustment triangulation_matching
 
