@@ -16,7 +16,7 @@ from ruslam.features.hloc_io import write_pairs
 from ruslam.features.pipeline import extract_features, list_images, make_pairs, match_features
 from ruslam.models.registry import load_extractor
 
-VAMR = SHARED_DATA / "sequences" / "vamr_desk_handheld"  # ../shared/data/sequences/vamr_desk_handheld
+VAMR = SHARED_DATA / "sequences" / "vamr_desk_handheld"  # optional real data (tests/conftest.py)
 
 SMALL = MultiViewConfig(num_views=6, width=320, height=240, focal=225.0, spacing=0.35)
 
@@ -106,7 +106,7 @@ def test_task_on_the_rendered_set_writes_models_table_and_results(tmp_path):
 def test_vamr_desk_every_3rd_frame_start(tmp_path):
     """The first 60 frames of the real desk sequence, every 3rd: UWNet registers them with the known camera."""
     if not VAMR.is_dir():
-        pytest.skip("../shared/data/sequences/vamr_desk_handheld is absent (optional real data)")
+        pytest.skip(f"{VAMR} is absent (optional real data; set RUSLAM_SAMPLES)")
     names = list_images(VAMR, 3)[:20]
     uwnet = load_extractor("uwnet_xfeat", detection_threshold=1e-5)  # as task=sfm runs it
     extract_features(VAMR, tmp_path / "f.h5", uwnet, names, progress=False)
