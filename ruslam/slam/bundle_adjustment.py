@@ -232,13 +232,17 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
 
 def _damped_step(Hcc, gc, Hxx, gx, Hxc, cx, oj, slot, oi, movable, lam, nf, eye3, eye6):
     """The solution (pose steps [nf, 6], point steps [M, 3]) of (H + lam I) d = -g by the Schur complement, or
-    None when the damped system is not positive definite (gtsam's Cholesky fails: a failed try)."""
+    None where gtsam's sequential Cholesky (points, then poses, one variable at a time) finds the damped system
+    indeterminate: a block that is not positive definite, or whose factor's last two diagonal entries differ by 12
+    binary orders of magnitude or more (`choleskyPartial`), which makes gtsam count the try as failed."""
     M = len(Hxx)
     Hxx_d = Hxx + lam * eye3
     Hxx_d[~movable] = eye3
     try:
         L = np.linalg.cholesky(Hxx_d)
     except np.linalg.LinAlgError:
+        return None
+    if not _determinate(L[:, 1, 1], L[:, 2, 2]):
         return None
     Linv = np.linalg.inv(L)
     Hxx_inv = np.swapaxes(Linv, 1, 2) @ Linv
@@ -249,16 +253,25 @@ def _damped_step(Hcc, gc, Hxx, gx, Hxc, cx, oj, slot, oi, movable, lam, nf, eye3
         for k in range(nf):
             S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hcc[k] + lam * eye6
         try:
-            c = scipy.linalg.cho_factor(S, check_finite=False)
+            Ls = np.linalg.cholesky(S)
         except np.linalg.LinAlgError:
             return None
-        dc = scipy.linalg.cho_solve(c, rhs - gc.ravel(), check_finite=False).reshape(nf, 6)
+        diag = np.diag(Ls).reshape(nf, 6)
+        if not _determinate(diag[:, 4], diag[:, 5]):
+            return None
+        dc = scipy.linalg.cho_solve((Ls, True), rhs - gc.ravel(), check_finite=False).reshape(nf, 6)
     back = _sum_blocks(np.sum(Hxc * dc[slot[oi[cx]], None, :], 2), oj[cx], M)
     dx = -np.einsum("mij,mj->mi", Hxx_inv, gx + back)
     dx[~movable] = 0.0
     if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dx))):
         return None
     return dc, dx
+
+
+def _determinate(second_last: np.ndarray, last: np.ndarray) -> bool:
+    """gtsam's test on the Cholesky factor of each eliminated variable: the binary exponent of its second-last
+    diagonal entry exceeds the last one's by less than 12."""
+    return bool(np.all(np.frexp(second_last)[1] - np.frexp(last)[1] < 14))
 
 
 def _reduced_camera_system(Hxc, point, slot, Hxx_inv, gx, nf, max_elements: int = 2_000_000):
