@@ -27,7 +27,7 @@ from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
 from ruslam.slam.map import KeyFrame, Map, inverse_pose, transform, update_normals
-from ruslam.slam.optimization import pose_graph_optimization
+from ruslam.slam.optimization import HUBER_DELTA, camera_projection, pose_graph_optimization
 
 log = logging.getLogger(__name__)
 
@@ -127,14 +127,14 @@ class LoopCloser:
             if current and self.cfg.enabled and kf.global_descriptor is not None:
                 for cand in self._detect(kf):
                     found = self._verify(kf, cand)
-                    if found is not None:
-                        self._correct(kf, cand, *found)
+                    if found is not None and self._lowers_residuals(kf, cand, *found):
+                        self._correct(kf, cand, *found[:2])
                         break
             if current and self.cfg.merge and self.atlas.inactive():
                 for cand in self._merge_candidates(kf):
                     found = self._verify(kf, cand)
                     if found is not None:
-                        self._merge(kf, cand, *found)
+                        self._merge(kf, cand, *found[:2])
                         break
             if kf.global_descriptor is not None:
                 self.database.add(kf)
@@ -226,12 +226,12 @@ class LoopCloser:
         z = Xc[:, 2]
         uv = Xc[:, :2] / np.where(z > 1e-9, z, 1e-9)[:, None] @ kf.K[:2, :2].T + kf.K[:2, 2]
         vis = np.nonzero((z > 0) & kf.in_image(uv))[0]
-        ip, _ = match_in_windows(uv[vis], s.descriptor[loop_points[vis]], kf.keypoints, kf.descriptors,
-                                 c.search_radius, self.binary, self.max_distance, ratio=0.9)
+        ip, ik = match_in_windows(uv[vis], s.descriptor[loop_points[vis]], kf.keypoints, kf.descriptors,
+                                  c.search_radius, self.binary, self.max_distance, ratio=0.9)
         if len(ip) < c.min_projected_matches:
             log.debug("Loop candidate %s for %s rejected: %d projected matches.", cand, kf, len(ip))
             return None
-        return S12, loop_points
+        return S12, loop_points, (loop_points[vis[ip]], ik)
 
     # --- correction --------------------------------------------------------------------------------------------
     def _correct(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: np.ndarray) -> None:
@@ -240,9 +240,7 @@ class LoopCloser:
         self.map.update_connections(kf)
         connected = [kf, *self.map.neighbours(kf)]
         before = {k: k.T_cw.copy() for k in connected}
-        corrected = {kf: S12 @ cand.T_cw}
-        for k in connected[1:]:
-            corrected[k] = before[k] @ inverse_pose(before[kf]) @ corrected[kf]
+        corrected = self._propagated(kf, cand, S12)
         s = self.atlas.store
         corrected_by: dict[int, KeyFrame] = {}  # point id -> the keyframe whose correction moved it
         for k in connected:
@@ -274,7 +272,69 @@ class LoopCloser:
         self.loops.append((kf.index, cand.index))
         self.groups = []
 
+    def _propagated(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray) -> dict[KeyFrame, np.ndarray]:
+        """The loop's similarity S_kw for kf, carried to its covisible neighbours by their relative poses."""
+        S_kw = S12 @ cand.T_cw
+        return {k: k.T_cw @ inverse_pose(kf.T_cw) @ S_kw for k in [kf, *self.map.neighbours(kf)]}
+
+    def _lowers_residuals(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: np.ndarray,
+                          matches: tuple[np.ndarray, np.ndarray]) -> bool:
+        """Whether the correction lowers the robust reprojection cost of the map's observations plus the loop's
+        matches, predicted before anything changes: the essential graph solved on the current graph (the loop's
+        keyframes linked as fusing their points would link them), every point moved with its reference keyframe.
+        A true loop pays for its drift with small strains along the graph; a false one (repetitive texture, a
+        look-alike place) bends the map and raises the cost. `loop_points` is unused: the verify tuple's shape."""
+        corrected = self._propagated(kf, cand, S12)
+        loop_group = {cand, *self.map.neighbours(cand, 10)} - set(corrected)  # linked once the points are fused
+        links = {k: loop_group for k in corrected}
+        kfs, idx, _, odometry, out = self._essential_graph(kf, cand, corrected, {}, links)
+        s = self.atlas.store
+        pose, key, point = [], [], []
+        for k in kfs:
+            has = np.nonzero(k.points >= 0)[0]
+            has = has[~s.bad[k.points[has]]]
+            pose.append(np.full(len(has), idx[k]))
+            key.append(k.keypoints[has])
+            point.append(k.points[has])
+        loop_ids, loop_keys = matches
+        pose = np.concatenate([*pose, np.full(len(loop_ids), idx[kf])])
+        uv = np.concatenate([*key, kf.keypoints[loop_keys]])
+        point = np.concatenate([*point, loop_ids])
+        ids, inverse = np.unique(point, return_inverse=True)
+        refs = np.array([idx.get(s.reference[j], -1) for j in ids])
+        for a, j in enumerate(ids):  # a point whose reference left the map moves with an observer in it
+            if refs[a] < 0:
+                refs[a] = next((idx[k] for k in s.observations[j] if k in idx), idx[cand])
+        before_poses = np.stack(odometry)
+        move = np.einsum("nij,njk->nik", np.stack([inverse_pose(S) for S in out])[refs], before_poses[refs])
+        X = s.position[ids]
+        X_after = np.einsum("nij,nj->ni", move[:, :3, :3], X) + move[:, :3, 3]
+        cost_before = _robust_cost(before_poses[pose], X[inverse], uv, kf.K, self.mapper.sigma)
+        cost_after = _robust_cost(out[pose], X_after[inverse], uv, kf.K, self.mapper.sigma)
+        if cost_after >= cost_before:
+            log.info("Loop %s <-> %s refused: the correction raises the reprojection cost (%.0f -> %.0f).", kf,
+                     cand, cost_before, cost_after)
+        return cost_after < cost_before
+
     def _optimize_essential_graph(self, kf, cand, before, corrected, corrected_by, new_links) -> None:
+        kfs, idx, initial, odometry, out = self._essential_graph(kf, cand, corrected, before, new_links)
+        s = self.atlas.store
+        for j in self.map.points:
+            ref = corrected_by.get(j, s.reference[j])
+            if ref not in idx:
+                ref = next((k for k in s.observations[j] if k in idx), None)
+                if ref is None:
+                    continue
+            i = idx[ref]
+            frame_of_point = initial[i] if j in corrected_by else odometry[i]  # the pose the point agrees with
+            s.position[j] = transform(inverse_pose(out[i]) @ frame_of_point, s.position[j][None])[0]
+        for k, S, S0 in zip(kfs, out, initial, strict=True):
+            k.T_cw = _rigid(S)
+            k.scale *= _scale(S0) / _scale(S)
+
+    def _essential_graph(self, kf, cand, corrected, before, new_links):
+        """The essential graph (spanning tree, loop edges, strong covisibility, the new loop links) solved from the
+        corrected poses: (keyframes, their index, initial poses, pre-loop poses, optimised similarities S_iw)."""
         kfs = [k for k in self.map.keyframes if not k.is_bad]
         idx = {k: i for i, k in enumerate(kfs)}
         initial = np.stack([corrected.get(k, k.T_cw) for k in kfs])  # corrected similarities, or current poses
@@ -301,19 +361,16 @@ class LoopCloser:
                     add(k, n, odometry)
         out = pose_graph_optimization(initial, np.array(edges), np.stack(rel), [idx[cand]],
                                       similarity=not self.stereo)
-        s = self.atlas.store
-        for j in self.map.points:
-            ref = corrected_by.get(j, s.reference[j])
-            if ref not in idx:
-                ref = next((k for k in s.observations[j] if k in idx), None)
-                if ref is None:
-                    continue
-            i = idx[ref]
-            frame_of_point = initial[i] if j in corrected_by else odometry[i]  # the pose the point agrees with
-            s.position[j] = transform(inverse_pose(out[i]) @ frame_of_point, s.position[j][None])[0]
-        for k, S, S0 in zip(kfs, out, initial, strict=True):
-            k.T_cw = _rigid(S)
-            k.scale *= _scale(S0) / _scale(S)
+        return kfs, idx, initial, odometry, out
+
+
+def _robust_cost(S_cw: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, sigma: float) -> float:
+    """Huber cost (the BA's kernel) of observations uv [N, 2] of points X [N, 3] by cameras S_cw [N, 4, 4]
+    (similarities: the scale does not change a projection); a point behind its camera costs as a 100 px error."""
+    Xc = np.einsum("nij,nj->ni", S_cw[:, :3, :3], X) + S_cw[:, :3, 3]
+    pix, _, z = camera_projection(Xc, K, jacobians=False)
+    e = np.where(z > 1e-9, np.linalg.norm(pix - uv, axis=1), 100.0) / sigma
+    return float(np.sum(np.where(e <= HUBER_DELTA, 0.5 * e**2, HUBER_DELTA * (e - 0.5 * HUBER_DELTA))))
 
 
 def _scale(S: np.ndarray) -> float:
