@@ -173,8 +173,8 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     # the correction is predicted before anything moves: the true similarity lowers the reprojection cost, a wrong
     # one (a look-alike place 0.6 m and 20 deg away) raises it and is refused
     wrong = pose_matrix(se3_exp(np.array([0, 0, np.deg2rad(20), 0, 0, 0]))[:3, :3], [0.6, 0.2, 0.0]) @ S12
-    assert not lc._lowers_residuals(new[-1], old[1], wrong, loop_points, matches)
-    assert lc._lowers_residuals(new[-1], old[1], S12, loop_points, matches)
+    assert not lc._lowers_residuals(new[-1], old[1], wrong, matches)
+    assert lc._lowers_residuals(new[-1], old[1], S12, matches)
     lc._correct(new[-1], old[1], S12, loop_points)
     assert before > 0.2 and centre_error(new) < 0.1 * before
     assert lc.loops == [(new[-1].index, old[1].index)]

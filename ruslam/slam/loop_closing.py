@@ -127,7 +127,7 @@ class LoopCloser:
             if current and self.cfg.enabled and kf.global_descriptor is not None:
                 for cand in self._detect(kf):
                     found = self._verify(kf, cand)
-                    if found is not None and self._lowers_residuals(kf, cand, *found):
+                    if found is not None and self._lowers_residuals(kf, cand, found[0], found[2]):
                         self._correct(kf, cand, *found[:2])
                         break
             if current and self.cfg.merge and self.atlas.inactive():
@@ -277,13 +277,13 @@ class LoopCloser:
         S_kw = S12 @ cand.T_cw
         return {k: k.T_cw @ inverse_pose(kf.T_cw) @ S_kw for k in [kf, *self.map.neighbours(kf)]}
 
-    def _lowers_residuals(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: np.ndarray,
+    def _lowers_residuals(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray,
                           matches: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the correction lowers the robust reprojection cost of the map's observations plus the loop's
         matches, predicted before anything changes: the essential graph solved on the current graph (the loop's
         keyframes linked as fusing their points would link them), every point moved with its reference keyframe.
         A true loop pays for its drift with small strains along the graph; a false one (repetitive texture, a
-        look-alike place) bends the map and raises the cost. `loop_points` is unused: the verify tuple's shape."""
+        look-alike place) bends the map and raises the cost."""
         corrected = self._propagated(kf, cand, S12)
         loop_group = {cand, *self.map.neighbours(cand, 10)} - set(corrected)  # linked once the points are fused
         links = {k: loop_group for k in corrected}
