@@ -95,7 +95,7 @@ class SLAMTrajectory:
 
 
 def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
-    """TUM format ``timestamp tx ty tz qx qy qz qw`` (`ruslam.slam.readers.write_tum_trajectory`)."""
+    """TUM format ``timestamp tx ty tz qx qy qz qw`` (`ruslam.data.readers.write_tum_trajectory`)."""
     write_tum_trajectory(path, Trajectory(timestamps, poses))
 
 
@@ -153,7 +153,7 @@ def make_frame(index, timestamp, images, extractor, sequence, stereo: bool, cfg:
 
 
 def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
-    """Run the SLAM over `sequence` (ruslam.slam.readers.Sequence) with any extractor of the project contract."""
+    """Run the SLAM over `sequence` (ruslam.data.readers.Sequence) with any extractor of the project contract."""
     cfg = as_config(cfg)
     if isinstance(extractor, str):
         from ruslam.models.registry import load_extractor  # noqa: PLC0415
