@@ -66,26 +66,25 @@ def bundle_adjustment(
             inlier &= observation_chi2(T, Xw, obs, K, K_right, T_c0_c1) < chi2
     T[fixed] = poses[fixed]
     if np.count_nonzero(fixed) == 1 and not obs_right.any():
-        T, Xw = _keep_scale(poses, T, Xw, fixed)
+        T, Xw = _keep_scale(poses, points, T, Xw, fixed)
     inlier = np.empty(len(order), bool)
     inlier[order] = observation_chi2(T, Xw, obs, K, K_right, T_c0_c1) < chi2
     return T, Xw, inlier
 
 
-def _keep_scale(poses, T, Xw, fixed):
+def _keep_scale(poses, points, T, Xw, fixed):
     """A monocular BA with one held pose leaves the scale free (the cost is invariant to scaling about that camera),
-    and LM drifts along it (16x in one local BA of a young forward-moving map): the solution scaled about the held
-    camera back to the input's spread of camera centres."""
+    and LM drifts along it (16x in one local BA of a young forward-moving map): the solution is scaled about the held
+    camera by the factor that moves the free camera centres and the points least from where they were."""
     centres = lambda P: -np.einsum("nji,nj->ni", P[:, :3, :3], P[:, :3, 3])  # noqa: E731
     anchor = centres(poses[fixed])[0]
-    before = np.linalg.norm(centres(poses[~fixed]) - anchor, axis=1).sum()
-    after = np.linalg.norm(centres(T[~fixed]) - anchor, axis=1).sum()
-    s = before / after if after > 1e-12 else 1.0
+    a = np.concatenate([centres(T[~fixed]), Xw]) - anchor
+    b = np.concatenate([centres(poses[~fixed]), points]) - anchor
+    s = float(np.sum(a * b) / np.sum(a * a)) if np.sum(a * a) > 1e-24 else 1.0
     if not np.isfinite(s) or s <= 0 or abs(s - 1.0) < 1e-12:
         return T, Xw
     T = T.copy()
-    c = anchor + s * (centres(T[~fixed]) - anchor)
-    T[~fixed, :3, 3] = -np.einsum("nij,nj->ni", T[~fixed, :3, :3], c)
+    T[~fixed, :3, 3] = -np.einsum("nij,nj->ni", T[~fixed, :3, :3], anchor + s * (centres(T[~fixed]) - anchor))
     return T, anchor + s * (Xw - anchor)
 
 
