@@ -75,12 +75,13 @@ def bundle_adjustment(
 def _keep_scale(poses, points, T, Xw, fixed):
     """A monocular BA with one held pose leaves the scale free (the cost is invariant to scaling about that camera),
     and LM drifts along it (16x in one local BA of a young forward-moving map): the solution is scaled about the held
-    camera by the factor that moves the free camera centres and the points least from where they were."""
+    camera so that the median free camera or point keeps its distance from it (far, uncertain points do not weigh
+    more than near ones)."""
     centres = lambda P: -np.einsum("nji,nj->ni", P[:, :3, :3], P[:, :3, 3])  # noqa: E731
     anchor = centres(poses[fixed])[0]
-    a = np.concatenate([centres(T[~fixed]), Xw]) - anchor
-    b = np.concatenate([centres(poses[~fixed]), points]) - anchor
-    s = float(np.sum(a * b) / np.sum(a * a)) if np.sum(a * a) > 1e-24 else 1.0
+    a = np.linalg.norm(np.concatenate([centres(T[~fixed]), Xw]) - anchor, axis=1)
+    b = np.linalg.norm(np.concatenate([centres(poses[~fixed]), points]) - anchor, axis=1)
+    s = float(np.median(b[a > 1e-12] / a[a > 1e-12])) if np.any(a > 1e-12) else 1.0
     if not np.isfinite(s) or s <= 0 or abs(s - 1.0) < 1e-12:
         return T, Xw
     T = T.copy()
