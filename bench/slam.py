@@ -1,18 +1,24 @@
-"""SLAM throughput at 640x480 on 2 threads, XFeat and ORB, synchronous (mapping and loop closing inline) or threaded.
+"""SLAM throughput at 640x480 on 2 threads, UWNet, XFeat and ORB, synchronous (mapping and loop closing inline) or
+threaded.
 
-    nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors xfeat orb] [--stereo] [--no-loop]
+    nice .venv/bin/python bench/slam.py [--frames 100] [--level clear] [--extractors uwnet_xfeat xfeat orb] [--stereo]
+                                        [--no-loop]
     nice .venv/bin/python bench/slam.py --variant dev:turn9 --profile     # a robustness-matrix variant, per stage
     nice .venv/bin/python bench/slam.py --variant test:base --laps 16 --frames 2000 --extractors orb   # memory
     nice .venv/bin/python bench/slam.py --modes sync threaded threaded-gil   # the modes, one after the other
     nice .venv/bin/python bench/slam.py --ba-solvers gtsam schur  # the two bundle-adjustment solvers
 
-For each extractor the baseline is feature extraction alone on the same frames, measured in this same run; the
-SLAM figure is frames / wall time of the whole run (extraction, tracking, mapping and loop closing; in threaded mode
-the mapper's thread runs alongside and the run ends when its queue is done), so the ratio says what the SLAM adds on
-top of the extractor. Per-frame times are the tracking thread's (in threaded mode they exclude the mapping it no
-longer waits for). Accuracy (APE after Sim3/SE3 alignment, % of path) is
-printed alongside, so a faster setting that breaks tracking shows up. Goals: >= 10 frames/s with the learned
-extractor, >= 25 with ORB.
+Each extractor runs with its preset (`ruslam.slam.preset(name)`: the extractor options and SLAM settings that
+`evaluate.py task=slam` uses, e.g. ORB at 1,000 keypoints, CLAHE conditioning, XFeat's and UWNet's LighterGlue
+pair matcher); the bench only sets the mode, the BA solver, loop closing and the frame count on top.
+
+For each extractor the baseline is feature extraction alone on the same (conditioned) frames, measured in this same
+run; the SLAM figure is frames / wall time of the whole run (extraction, tracking, mapping and loop closing; in
+threaded mode the mapper's thread runs alongside and the run ends when its queue is done), so the ratio says what
+the SLAM adds on top of the extractor. Per-frame times are the tracking thread's (in threaded mode they exclude the
+mapping it no longer waits for). Accuracy (APE after Sim3/SE3 alignment, % of path) is printed alongside, so a
+faster setting that breaks tracking shows up. Goals (idle machine, 2 threads, synchronous, 100 frames): >= 10
+frames/s with UWNet (a 10 Hz camera in real time), >= 15 with ORB at 1,000 keypoints.
 
 Memory: the resident set size is sampled every 0.5 s during each SLAM run; the bench prints its peak and its
 growth over the second half of the frames (MB per 1,000 frames) next to the map's final size, so a leak (growth
@@ -31,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
 import itertools
 import logging
 import os
@@ -43,18 +50,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ruslam import load_extractor
 from ruslam.data.readers import Trajectory
 from ruslam.data.synthetic_sequence import synthetic_sequence
 from ruslam.eval.trajectory import evaluate_trajectory
-from ruslam.slam import SLAMConfig, run
+from ruslam.slam import SLAMConfig, preset, run
 from ruslam.slam.bundle_adjustment import SOLVERS
 from ruslam.slam.local_mapping import MappingConfig
-from ruslam.slam.loop_closing import LoopConfig
 
 # stage -> (file suffix, function) pairs whose cumulative times add up to it (see --profile)
 STAGES = {
     "load frame": [("data/readers.py", "load")],
+    "condition": [("slam/conditioning.py", "__call__")],
     "extract": [("slam/system.py", "make_frame")],
     "track (all)": [("slam/tracking.py", "track")],
     "  keyframe decision": [("slam/tracking.py", "_need_keyframe")],
@@ -160,12 +166,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=100, help="first frames of the 200-frame sequence")
     parser.add_argument("--level", default="clear")
-    parser.add_argument("--extractors", nargs="+", default=["xfeat", "orb"])
+    parser.add_argument("--extractors", nargs="+", default=["uwnet_xfeat", "xfeat", "orb"],
+                        help="extractor names, each with its preset (ruslam.slam.presets)")
     parser.add_argument("--stereo", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-loop", action="store_true", help="disable loop closing (APE with vs without)")
     parser.add_argument("--global-ba", action="store_true", help="full-map BA after a loop correction")
-    parser.add_argument("--max-keypoints", type=int, default=None, help="extractor keypoint cap (default: its own)")
+    parser.add_argument("--max-keypoints", type=int, default=None,
+                        help="extractor keypoint cap (default: its preset's)")
     parser.add_argument("--variant", default=None, help="robustness-matrix variant split:name, e.g. dev:turn9")
     parser.add_argument("--laps", type=float, default=None, help="laps of the --variant (a long run for memory)")
     parser.add_argument("--profile", action="store_true", help="time per SLAM stage (cProfile)")
@@ -185,25 +193,27 @@ def main() -> None:
     gt = Trajectory(seq.groundtruth.timestamps[:n], seq.groundtruth.poses[:n])
     print(f"sequence {seq.name}: {n} frames {seq.cameras[0].width}x{seq.cameras[0].height}, "
           f"{'stereo' if args.stereo else 'mono'}, path {gt.path_length():.2f} m, torch threads {args.threads}")
-    print(f"{'extractor':16s} {'extract fps':>11s} {'SLAM fps':>9s} {'ratio':>6s} {'tracked':>8s} {'kfs':>4s} "
+    print(f"{'extractor':22s} {'extract fps':>11s} {'SLAM fps':>9s} {'ratio':>6s} {'tracked':>8s} {'kfs':>4s} "
           f"{'loops':>5s} {'APE m':>7s} {'APE %path':>9s}")
     for name in args.extractors:
-        extractor = load_extractor(name, **({} if args.max_keypoints is None else
-                                            {"max_keypoints": args.max_keypoints}))
-        extractor.extract(images[0][0])  # warm-up
+        extractor, preset_cfg = preset(name, **({} if args.max_keypoints is None else
+                                                {"max_keypoints": args.max_keypoints}))
+        conditioned = [[preset_cfg.conditioning(image) for image in frame] for frame in images]
+        extractor.extract(conditioned[0][0])  # warm-up
         start, cpu = time.perf_counter(), cpu_seconds()
-        for frame in images:
+        for frame in conditioned:
             for image in frame:
                 extractor.extract(image)
         extract_fps = n / (time.perf_counter() - start)
         extract_cpu = cpu_seconds() - cpu
         for mode, solver in itertools.product(args.modes, args.ba_solvers):
             # cProfile sees the main thread only: --profile makes each frame there (no prefetch thread)
-            cfg = SLAMConfig(progress=False, synchronous=mode == "sync", solver_process=mode == "threaded",
-                             prefetch=not args.profile,
-                             mapping_backlog=args.mapping_backlog, max_frames=n,
-                             mapping=MappingConfig(ba_solver=solver),
-                             loop=LoopConfig(enabled=not args.no_loop, global_bundle_adjustment=args.global_ba))
+            cfg = dataclasses.replace(
+                preset_cfg, progress=False, synchronous=mode == "sync", solver_process=mode == "threaded",
+                prefetch=not args.profile, mapping_backlog=args.mapping_backlog, max_frames=n,
+                mapping=dataclasses.replace(preset_cfg.mapping, ba_solver=solver),
+                loop=dataclasses.replace(preset_cfg.loop, enabled=not args.no_loop,
+                                         global_bundle_adjustment=args.global_ba))
             profiler = cProfile.Profile() if args.profile else None
             if profiler:
                 profiler.enable()
@@ -223,15 +233,15 @@ def main() -> None:
                                              "se3" if args.stereo else "sim3")
                 ape = errors.ape_rmse
             label = "/".join([name] + [mode] * (len(args.modes) > 1) + [solver] * (len(args.ba_solvers) > 1))
-            print(f"{label:16s} {extract_fps:11.1f} {slam_fps:9.1f} {slam_fps / extract_fps:6.2f} "
+            print(f"{label:22s} {extract_fps:11.1f} {slam_fps:9.1f} {slam_fps / extract_fps:6.2f} "
                   f"{result.tracked_ratio:8.1%} {result.num_keyframes:4d} {len(result.loops):5d} {ape:7.4f} "
                   f"{100 * ape / gt.path_length():9.2f}")
             per_frame = np.sort(result.timings)
-            print(f"{'':16s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
+            print(f"{'':22s} per-frame ms: median {1e3 * np.median(per_frame):.0f}, p90 "
                   f"{1e3 * per_frame[int(0.9 * (n - 1))]:.0f}, max {1e3 * per_frame[-1]:.0f}")
-            print(f"{'':16s} {memory_line(memory, result.timings)}; final map {result.num_keyframes} keyframes, "
+            print(f"{'':22s} {memory_line(memory, result.timings)}; final map {result.num_keyframes} keyframes, "
                   f"{result.num_points} points")
-            print(f"{'':16s} {cpu_line('extraction', extract_cpu, n)}; {cpu_line('SLAM', slam_cpu, n)}")
+            print(f"{'':22s} {cpu_line('extraction', extract_cpu, n)}; {cpu_line('SLAM', slam_cpu, n)}")
             if profiler:
                 print(stage_table(pstats.Stats(profiler), n, wall))
 
