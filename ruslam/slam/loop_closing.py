@@ -5,7 +5,8 @@ Keyframes' global descriptors live in one matrix; a query scores them all with e
 Candidates are the top-k above a threshold (the larger of a fixed floor and the lowest score of the keyframe's own
 covisible neighbours, as ORB-SLAM does with DBoW2), excluding those neighbours; a candidate must be consistent over
 consecutive keyframes, then pass geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for
-stereo, then a guided search); the loop is corrected by propagating the similarity to the covisible group,
+stereo, then a guided search) and a predicted correction that must lower the map's robust reprojection cost
+(`_lowers_residuals`); the loop is corrected by propagating the similarity to the covisible group,
 fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point
 with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
 
