@@ -98,9 +98,7 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
     results.sort(key=lambda r: -r[0])
     if results[0][0] < min_points:
         return None
-    # a rival counts when it triangulates nearly as many points with the parallax to be taken itself; one that
-    # explains the matches by a near-pure rotation (points near infinity) is no competing reconstruction
-    close = [results[0], *(r for r in results[1:] if r[0] > 0.7 * results[0][0] and r[4] >= min_parallax_deg)]
+    close = [r for r in results if r[0] > 0.7 * results[0][0]]
     if len(close) > 1:
         # A plane (a seafloor seen from above) has two exact solutions, the spurious one rotating the camera by
         # about the parallax angle (Faugeras-Lustman): between video frames the one closer to the expected rotation
