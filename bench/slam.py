@@ -29,8 +29,12 @@ extraction alone and for the SLAM run, with the frames/s that this many CPU-seco
 if they were perfectly shared (`bound`): a goal above the bound cannot be met by scheduling alone, only by less work.
 
 `--profile` runs the SLAM under cProfile and prints the time per stage (ms per frame, share of the run): each
-stage is the cumulative time of the functions that implement it, so nested stages (local BA inside keyframe
-insertion) are listed under their own name and "tracking" excludes the inline mapping it triggers.
+stage is the cumulative time of the functions that implement it, so nested stages are listed under their own name
+and counted in their parents too: in synchronous mode "track (all)" holds the keyframes' inline mapping and loop
+closing ("tracking alone" is what remains), "pose optimisation" counts every pose-only optimisation (also the one
+inside local map search), and the pair matcher
+(LighterGlue) is counted wherever it runs (tracking's fallbacks, loop candidate checks). Load frame, condition,
+extract and track (all) add up to the whole run.
 """
 
 from __future__ import annotations
@@ -75,17 +79,21 @@ STAGES = {
                    ("slam/bundle_adjustment.py", "_gtsam_levenberg_marquardt")],
     "  culling": [("slam/local_mapping.py", "_cull_points"), ("slam/local_mapping.py", "_cull_keyframes")],
     "loop closing (all)": [("slam/loop_closing.py", "process")],
+    "  candidate checks": [("slam/loop_closing.py", "_verify")],
+    "pair matcher (anywhere)": [("models/lightglue.py", "__call__")],
 }
 
 
-def stage_table(stats: pstats.Stats, frames: int, total: float) -> str:
-    """Per-stage ms/frame and share of the total, from cumulative times of the stage's functions."""
-    rows = []
-    for stage, functions in STAGES.items():
-        cum = sum(v[3] for (path, _, name), v in stats.stats.items()
-                  for suffix, fn in functions if name == fn and path.endswith(suffix))
-        rows.append(f"  {stage:22s} {1e3 * cum / frames:8.1f} ms/frame {100 * cum / total:5.1f} %")
-    return "\n".join(rows)
+def stage_table(stats: pstats.Stats, frames: int, total: float, synchronous: bool) -> str:
+    """Per-stage ms/frame and share of the total, from cumulative times of the stage's functions; in synchronous
+    mode also tracking alone (track minus the mapping and loop closing it runs inline)."""
+    cums = {stage: sum(v[3] for (path, _, name), v in stats.stats.items()
+                       for suffix, fn in functions if name == fn and path.endswith(suffix))
+            for stage, functions in STAGES.items()}
+    if synchronous:
+        cums["tracking alone"] = cums["track (all)"] - cums["mapping (all)"] - cums["loop closing (all)"]
+    return "\n".join(f"  {stage:24s} {1e3 * cum / frames:8.1f} ms/frame {100 * cum / total:5.1f} %"
+                     for stage, cum in cums.items())
 
 
 class MemorySampler(threading.Thread):
@@ -243,7 +251,7 @@ def main() -> None:
                   f"{result.num_points} points")
             print(f"{'':22s} {cpu_line('extraction', extract_cpu, n)}; {cpu_line('SLAM', slam_cpu, n)}")
             if profiler:
-                print(stage_table(pstats.Stats(profiler), n, wall))
+                print(stage_table(pstats.Stats(profiler), n, wall, mode == "sync"))
 
 
 if __name__ == "__main__":
