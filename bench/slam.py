@@ -32,9 +32,8 @@ if they were perfectly shared (`bound`): a goal above the bound cannot be met by
 stage is the cumulative time of the functions that implement it, so nested stages are listed under their own name
 and counted in their parents too: in synchronous mode "track (all)" holds the keyframes' inline mapping and loop
 closing ("tracking alone" is what remains), "pose optimisation" counts every pose-only optimisation (also the one
-inside local map search), and the pair matcher
-(LighterGlue) is counted wherever it runs (tracking's fallbacks, loop candidate checks). Load frame, condition,
-extract and track (all) add up to the whole run.
+inside local map search), and the pair matcher (LighterGlue) is counted wherever it runs (tracking's fallbacks,
+loop candidate checks). Load frame, condition, extract and track (all) add up to the whole run.
 """
 
 from __future__ import annotations
