@@ -42,6 +42,16 @@ def _results():
             ok("03", "orb", 0.30, 0.04), ok("03", "uwnet", 0.20, 0.03)]
 
 
+def test_top_view_is_the_plane_the_ground_truth_spreads_in():
+    from ruslam.eval.slam_report import top_view_axes
+
+    t = np.linspace(0, 1, 20)
+    floor = np.c_[np.sin(3 * t), 0.01 * t, 2 * t]  # a crawler on a floor, y down: x-z
+    aerial = np.c_[2 * t, np.cos(3 * t), 0.02 * t]  # a survey at constant altitude: x-y
+    assert top_view_axes(floor) == (0, 2)
+    assert top_view_axes(aerial) == (0, 1)
+
+
 def test_avg_is_over_sequences_where_every_method_succeeds():
     avg, common = average_over_common_successes(_results(), ["01", "02", "03"], ["orb", "uwnet"], ["ape", "rpe"])
     assert common == ["01", "03"]

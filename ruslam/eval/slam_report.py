@@ -174,18 +174,26 @@ def runs_table(results: list[RunResult], labels: dict) -> tuple[str, str]:
 # --------------------------------------------------------------------------------------------------- plots
 
 
+def top_view_axes(xyz: np.ndarray) -> tuple[int, int]:
+    """The two world axes along which the ground truth spreads most, in order (x-z for a camera driving on the
+    floor of a y-down world, x-y for an aerial survey)."""
+    a, b = sorted(np.argsort(-np.ptp(xyz, axis=0))[:2])
+    return int(a), int(b)
+
+
 def plot_top_view(path: Path, title: str, reference_xyz: np.ndarray, estimates: dict[str, np.ndarray]) -> None:
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
+    a, b = top_view_axes(reference_xyz)
     fig, ax = plt.subplots(figsize=(6, 5))
-    ax.plot(reference_xyz[:, 0], reference_xyz[:, 1], "k--", lw=1.5, label="ground truth")
+    ax.plot(reference_xyz[:, a], reference_xyz[:, b], "k--", lw=1.5, label="ground truth")
     for name, xyz in estimates.items():
-        ax.plot(xyz[:, 0], xyz[:, 1], lw=1.2, label=name)
+        ax.plot(xyz[:, a], xyz[:, b], lw=1.2, label=name)
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set(title=title, xlabel="x [m]", ylabel="y [m]")
+    ax.set(title=title, xlabel=f"{'xyz'[a]} [m]", ylabel=f"{'xyz'[b]} [m]")
     ax.legend(fontsize=8)
     _save(fig, path)
 
