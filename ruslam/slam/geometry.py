@@ -98,7 +98,7 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
     results.sort(key=lambda r: -r[0])
     if results[0][0] < min_points:
         return None
-    close = [r for r in results if r[0] > 0.7 * results[0][0]]
+    close = [r for r in results if r[0] > 0.75 * results[0][0]]
     if len(close) > 1:
         # A plane (a seafloor seen from above) has two exact solutions, the spurious one rotating the camera by
         # about the parallax angle (Faugeras-Lustman): between video frames the one closer to the expected rotation
