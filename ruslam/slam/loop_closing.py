@@ -26,9 +26,10 @@ import numpy as np
 
 from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
+from ruslam.slam.bundle_adjustment import robust_cost
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
 from ruslam.slam.map import KeyFrame, Map, inverse_pose, transform, update_normals
-from ruslam.slam.optimization import HUBER_DELTA, camera_projection, pose_graph_optimization
+from ruslam.slam.optimization import pose_graph_optimization
 
 log = logging.getLogger(__name__)
 
@@ -310,8 +311,11 @@ class LoopCloser:
         move = np.einsum("nij,njk->nik", np.stack([inverse_pose(S) for S in out])[refs], before_poses[refs])
         X = s.position[ids]
         X_after = np.einsum("nij,nj->ni", move[:, :3, :3], X) + move[:, :3, 3]
-        cost_before = _robust_cost(before_poses[pose], X[inverse], uv, kf.K, self.mapper.sigma)
-        cost_after = _robust_cost(out[pose], X_after[inverse], uv, kf.K, self.mapper.sigma)
+        order = np.argsort(pose, kind="stable")  # the BA's observation layout: sorted by pose
+        obs = (pose[order], inverse[order], uv[order], np.zeros(len(pose), bool))
+        every = np.ones(len(pose), bool)
+        cost_before = robust_cost(before_poses, X, obs, every, kf.K, sigma=self.mapper.sigma)
+        cost_after = robust_cost(out, X_after, obs, every, kf.K, sigma=self.mapper.sigma)
         if cost_after >= cost_before:
             log.info("Loop %s <-> %s refused: the correction raises the reprojection cost (%.0f -> %.0f).", kf,
                      cand, cost_before, cost_after)
@@ -363,15 +367,6 @@ class LoopCloser:
         out = pose_graph_optimization(initial, np.array(edges), np.stack(rel), [idx[cand]],
                                       similarity=not self.stereo)
         return kfs, idx, initial, odometry, out
-
-
-def _robust_cost(S_cw: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, sigma: float) -> float:
-    """Huber cost (the BA's kernel) of observations uv [N, 2] of points X [N, 3] by cameras S_cw [N, 4, 4]
-    (similarities: the scale does not change a projection); a point behind its camera costs as a 100 px error."""
-    Xc = np.einsum("nij,nj->ni", S_cw[:, :3, :3], X) + S_cw[:, :3, 3]
-    pix, _, z = camera_projection(Xc, K, jacobians=False)
-    e = np.where(z > 1e-9, np.linalg.norm(pix - uv, axis=1), 100.0) / sigma
-    return float(np.sum(np.where(e <= HUBER_DELTA, 0.5 * e**2, HUBER_DELTA * (e - 0.5 * HUBER_DELTA))))
 
 
 def _scale(S: np.ndarray) -> float:
