@@ -170,10 +170,7 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
     free_poses = np.nonzero(~fixed)[0]
     eye3, eye6 = np.eye(3), np.eye(6)
 
-    def cost_at(T, Xw):
-        return float(np.sum(_huber_terms(T, Xw, obs, K, K_right, T_c0_c1, sigma, False)[0][use]))
-
-    cost = cost_at(T, Xw)
+    cost = robust_cost(T, Xw, obs, use, K, K_right, T_c0_c1, sigma)
     lam = 1e-5  # lambdaInitial
     done = 0  # gtsam's iterations(): successful steps
     while done < iterations and cost > 0:
@@ -207,7 +204,7 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
                     for i in free_poses:
                         T_new[i] = se3_exp(dpose[i]) @ T[i]
                     X_new = Xw + dx
-                    new_cost = cost_at(T_new, X_new)
+                    new_cost = robust_cost(T_new, X_new, obs, use, K, K_right, T_c0_c1, sigma)
                     change = cost - new_cost
                     if linear_change > np.finfo(float).eps * old_linear:
                         success = change / linear_change > 1e-3  # minModelFidelity
@@ -231,8 +228,8 @@ def _schur_levenberg_marquardt(T, fixed, Xw, obs, use, K, K_right, T_c0_c1, iter
 def _damped_step(Hcc, gc, Hxx, gx, Hxc, cx, oj, slot, oi, movable, lam, nf, eye3, eye6):
     """The solution (pose steps [nf, 6], point steps [M, 3]) of (H + lam I) d = -g by the Schur complement, or
     None where gtsam's sequential Cholesky (points, then poses, one variable at a time) finds the damped system
-    indeterminate: a block that is not positive definite, or whose factor's last two diagonal entries differ by 12
-    binary orders of magnitude or more (`choleskyPartial`), which makes gtsam count the try as failed."""
+    indeterminate: a block that is not positive definite, or whose factor's last two diagonal entries differ by 14
+    binary orders of magnitude or more (`_determinate`), which makes gtsam count the try as failed."""
     M = len(Hxx)
     Hxx_d = Hxx + lam * eye3
     Hxx_d[~movable] = eye3
@@ -268,7 +265,8 @@ def _damped_step(Hcc, gc, Hxx, gx, Hxc, cx, oj, slot, oi, movable, lam, nf, eye3
 
 def _determinate(second_last: np.ndarray, last: np.ndarray) -> bool:
     """gtsam's test on the Cholesky factor of each eliminated variable: the binary exponent of its second-last
-    diagonal entry exceeds the last one's by less than 12."""
+    diagonal entry exceeds the last one's by less than 14 (gtsam's `choleskyPartial` names 12; 14 reproduces its
+    decisions on every recorded local BA, 12 missed five: BENCHMARKS.md, `bench/ba_regression.py`)."""
     return bool(np.all(np.frexp(second_last)[1] - np.frexp(last)[1] < 14))
 
 
