@@ -11,7 +11,13 @@ import pytest
 from conftest import ROOT, SHARED_DATA
 
 from ruslam.data.multiview import MultiViewConfig, render_multiview, survey_poses
-from ruslam.eval.sfm import colmap_camera, read_groundtruth_positions, reconstruct, sim3_align
+from ruslam.eval.sfm import (
+    colmap_camera,
+    per_extractor,
+    read_groundtruth_positions,
+    reconstruct,
+    sim3_align,
+)
 from ruslam.features.hloc_io import write_pairs
 from ruslam.features.pipeline import extract_features, list_images, make_pairs, match_features
 from ruslam.models.registry import load_extractor
@@ -67,6 +73,24 @@ def test_sim3_align_recovers_a_similarity():
     R *= np.sign(np.linalg.det(R))
     dst = 2.5 * src @ R.T + [1.0, -2.0, 0.5]
     assert np.allclose(sim3_align(src, dst), dst, atol=1e-9)
+
+
+def test_matcher_and_ratio_are_set_once_or_per_extractor():
+    from omegaconf import OmegaConf
+
+    assert per_extractor("lightglue", "sift", "nn") == "lightglue"
+    assert per_extractor(None, "sift", "nn") == "nn"
+    mapping = OmegaConf.create({"default": "nn", "uwnet_xfeat": "lightglue"})
+    assert per_extractor(mapping, "uwnet_xfeat", "nn") == "lightglue"
+    assert per_extractor(mapping, "sift", "nn") == "nn"
+    assert per_extractor(OmegaConf.create({"sift": 0.8}), "aliked") is None
+
+
+def test_unknown_matcher_for_one_extractor_is_one_sentence_exit_2(tmp_path):
+    proc = _evaluate(["task.matcher.sift=superglue", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "task.matcher for sift" in lines[0] and "'superglue'" in lines[0]
 
 
 def _evaluate(args, cwd):

@@ -48,8 +48,18 @@ def check(cfg: DictConfig) -> None:
     root = cfg.dataset.get("root")
     if root is not None:
         list_images(Path(str(root)).expanduser(), _every(cfg.dataset))
-    if task.matcher not in ("nn", "lightglue"):
-        raise InputError(f"task.matcher must be 'nn' or 'lightglue', got {task.matcher!r}.")
+    for name in [str(n) for n in cfg.extractors]:
+        matcher = per_extractor(task.get("matcher"), name, "nn")
+        if matcher not in ("nn", "lightglue"):
+            raise InputError(f"task.matcher for {name} must be 'nn' or 'lightglue', got {matcher!r}.")
+
+
+def per_extractor(setting, name: str, fallback=None):
+    """A task setting given once for every extractor, or per name as {default: ..., <name>: ...}."""
+    if not OmegaConf.is_config(setting) and not isinstance(setting, dict):
+        return fallback if setting is None else setting
+    setting = _plain(setting)
+    return setting.get(name, setting.get("default", fallback))
 
 
 def _every(dataset: DictConfig) -> int:
@@ -273,10 +283,9 @@ def run_extractor(name: str, image_dir: Path, names: list[str], pairs: list, out
     extract_features(image_dir, features, extractor, names, resize_max=task.get("resize_max"), progress=progress)
     pairs_path = out / "pairs.txt"
     write_pairs(pairs_path, pairs)
-    ratio = _plain(task.get("ratio"))
     matches = out / "matches.h5"
-    match_features(features, pairs, matches, matcher=task.matcher, ratio=ratio.get(name, ratio.get("default")),
-                   progress=progress)
+    match_features(features, pairs, matches, matcher=per_extractor(task.get("matcher"), name, "nn"),
+                   ratio=per_extractor(task.get("ratio"), name), progress=progress)
     recon, n_models = reconstruct(image_dir, names, features, pairs_path, matches, out,
                                   min_num_matches=int(task.min_num_matches), seed=int(task.seed))
     return summarize(recon, n_models, len(names), time.perf_counter() - start, gt)
