@@ -3,7 +3,8 @@
 Per extractor, into ``<out_dir>/<extractor>/``: ``features.h5``, ``pairs.txt`` and ``matches.h5`` (hloc's files,
 `ruslam.features`), ``database.db``, and the largest model in ``sparse/`` (COLMAP binary) and ``sparse_txt/``
 (text). Keypoints get +0.5 on import (COLMAP's origin is the top-left corner of the top-left pixel, ours and
-hloc's its centre), matches are geometrically verified (`pycolmap.verify_matches`), then incremental mapping.
+hloc's its centre), matches (per extractor: ``task.matcher``, ``task.ratio``) are geometrically verified
+(`pycolmap.verify_matches`), then incremental mapping.
 In ``out_dir``: ``table.md`` and ``results.json`` with, per extractor, ``images``, ``registered``, ``points``,
 ``track_length``, ``reproj_error`` (px), ``seconds`` (extraction + matching + verification + mapping) and, when the
 folder has a ``groundtruth.txt`` (TUM, T_world_camera; image stems are timestamps in ns or s), the camera position
