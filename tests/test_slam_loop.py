@@ -4,6 +4,7 @@ import itertools
 
 import numpy as np
 
+from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.loop_closing import KeyFrameDatabase, LoopCloser, LoopConfig
 from ruslam.slam.map import Frame, KeyFrame, Map
@@ -181,3 +182,75 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     # duplicates were fused: the new keyframes now observe the old points
     seen = {j for k in new for j in k.points[k.points >= 0].tolist()}
     assert len(seen & set(old_pts.tolist())) > 0.8 * len(seen)
+
+
+def _revisit(matching: int, look_alike: bool, pair_matcher_calls: list):
+    """A loop closer, a current keyframe and an old one 0.1 m apart seeing the same 400 landmarks (no drift). The
+    texture repeats: all but `matching` landmarks have a twin with the same descriptor elsewhere in view, so the
+    ratio test keeps only the `matching` unique ones (fewer than `min_matches`); with `look_alike` those sit on the
+    wrong landmarks in the current keyframe (a place that looks the same, geometry that does not agree). The pair
+    matcher returns the true correspondences and records its calls."""
+    from ruslam.slam.geometry import pose_matrix
+    from ruslam.slam.local_mapping import LocalMapper, MappingConfig
+    from ruslam.slam.map import inverse_pose
+
+    rng = np.random.default_rng(5)
+    landmarks = np.c_[rng.uniform(-1.2, 1.2, 400), rng.uniform(-0.9, 0.9, 400), rng.uniform(-0.2, 0.2, 400)]
+
+    def unit(d):
+        return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+    twins = (400 - matching) // 2
+    base = rng.normal(size=(matching + twins, 32))
+    desc_old = unit(np.r_[base, base[matching:]] + rng.normal(0, 0.01, (matching + 2 * twins, 32)))
+    desc_new = unit(desc_old + rng.normal(0, 0.02, desc_old.shape))
+    if look_alike:
+        desc_new[:matching] = desc_new[rng.permutation(matching)]
+    down = np.diag([1.0, -1.0, -1.0])
+
+    def T(x):
+        return inverse_pose(pose_matrix(down, [x, 0.0, 2.0]))
+
+    atlas = Atlas(Map())
+    lc = LoopCloser(atlas, LocalMapper(atlas, MappingConfig(), binary=False), LoopConfig(), binary=False,
+                    stereo=False)
+    store = atlas.store
+    placeholder = keyframe(np.ones(8))
+    old_pts = np.array([store.add(x, d, placeholder) for x, d in zip(landmarks, desc_old, strict=True)])
+    new_pts = np.array([store.add(x, d, placeholder) for x, d in zip(landmarks, desc_new, strict=True)])
+    old = _observing_keyframe(T(0.0), T(0.0), landmarks, desc_old, store, old_pts, 0, rng)
+    new = _observing_keyframe(T(0.1), T(0.1), landmarks, desc_new, store, new_pts, 10, rng)
+    landmark_of_old = {int(p): i for i, p in enumerate(old_pts)}
+    landmark_of_new = {int(p): i for i, p in enumerate(new_pts)}
+
+    def pair_matcher(kp1, d1, size1, kp2, d2, size2):  # (new, old) -> the true correspondences
+        pair_matcher_calls.append(len(kp1))
+        where = {landmark_of_old[int(p)]: j for j, p in enumerate(old.points)}
+        a = [i for i, p in enumerate(new.points) if landmark_of_new[int(p)] in where]
+        return np.array(a), np.array([where[landmark_of_new[int(new.points[i])]] for i in a])
+
+    lc.pair_matcher = pair_matcher
+    atlas.active.add_keyframe(old)
+    atlas.active.add_keyframe(new)
+    for j in np.r_[old_pts, new_pts]:
+        if store.observations[j]:
+            store.reference[j] = next(iter(store.observations[j]))
+            atlas.active.points.add(int(j))
+    return lc, new, old
+
+
+def test_pair_matcher_only_for_knn_matches_that_agree_on_a_similarity():
+    # a revisit where kNN finds 12 matches (< min_matches 20) on the right landmarks: they agree on one similarity,
+    # so the pair matcher is asked for more and the loop is verified
+    calls = []
+    lc, new, old = _revisit(12, look_alike=False, pair_matcher_calls=calls)
+    assert lc.cfg.pair_matcher_min_inliers <= 12 < lc.cfg.min_matches
+    ia, ib = lc.atlas.store.matched(new), lc.atlas.store.matched(old)
+    assert len(match_knn_ratio(new.descriptors[ia], old.descriptors[ib], False, 0.7, 0.8)[0]) == 12
+    assert lc._verify(new, old) is not None
+    assert len(calls) == 1
+    # the same number of kNN matches on a look-alike place: no similarity, the pair matcher is never called
+    calls = []
+    lc, new, old = _revisit(12, look_alike=True, pair_matcher_calls=calls)
+    assert lc._verify(new, old) is None
+    assert calls == []

@@ -5,7 +5,8 @@ Keyframes' global descriptors live in one matrix; a query scores them all with e
 Candidates are the top-k above a threshold (the larger of a fixed floor and the lowest score of the keyframe's own
 covisible neighbours, as ORB-SLAM does with DBoW2), excluding those neighbours; a candidate must be consistent over
 consecutive keyframes, then pass geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for
-stereo, then a guided search) and a predicted correction that must lower the map's robust reprojection cost
+stereo, then a guided search; the learned pair matcher adds matches where kNN finds too few, only when those few
+already agree on one similarity) and a predicted correction that must lower the map's robust reprojection cost
 (`_lowers_residuals`); the loop is corrected by propagating the similarity to the covisible group,
 fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point
 with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
@@ -46,6 +47,7 @@ class LoopConfig:
     max_distance_float: float = 0.7
     ratio: float = 0.8
     min_matches: int = 20  # descriptor matches before Sim3 RANSAC
+    pair_matcher_min_inliers: int = 6  # kNN matches agreeing on one Sim3 before the pair matcher is asked for more
     min_inliers: int = 20
     min_projected_matches: int = 40  # matches of the loop group's points after the guided search
     search_radius: float = 10.0
@@ -204,8 +206,11 @@ class LoopCloser:
             return None
         a, b = match_knn_ratio(kf.descriptors[ia], cand.descriptors[ib], self.binary, self.max_distance, c.ratio)
         a, b = ia[a], ib[b]
-        if len(a) < c.min_matches and self.pair_matcher is not None:  # the learned matcher when kNN finds too few:
-            # all keypoints matched, then those with map points on both sides kept
+        if (len(a) < c.min_matches and self.pair_matcher is not None
+                and self._similarity(kf, cand, a, b, c.pair_matcher_min_inliers) is not None):
+            # the learned matcher when kNN finds too few, but enough of them agree on one similarity (a look-alike
+            # place's few kNN matches agree on none, and LighterGlue costs 0.3-1 s): all keypoints matched, then
+            # those with map points on both sides kept
             a, b = self.pair_matcher(kf.keypoints, kf.descriptors, kf.image_size, cand.keypoints, cand.descriptors,
                                      cand.image_size)
             keep = np.isin(a, ia) & np.isin(b, ib)
@@ -213,10 +218,7 @@ class LoopCloser:
         if len(a) < c.min_matches:
             log.debug("Candidate %s for %s rejected: %d descriptor matches.", cand, kf, len(a))
             return None
-        P1 = transform(kf.T_cw, s.position[kf.points[a]])
-        P2 = transform(cand.T_cw, s.position[cand.points[b]])
-        out = sim3_ransac(P1, P2, kf.keypoints[a], cand.keypoints[b], kf.K, cand.K, with_scale=not self.stereo,
-                          seed=self.seed + kf.id, min_inliers=c.min_inliers)
+        out = self._similarity(kf, cand, a, b, c.min_inliers)
         if out is None:
             log.debug("Candidate %s for %s rejected: no Sim3 with %d inliers.", cand, kf, c.min_inliers)
             return None
@@ -234,6 +236,14 @@ class LoopCloser:
             log.debug("Loop candidate %s for %s rejected: %d projected matches.", cand, kf, len(ip))
             return None
         return S12, loop_points, (loop_points[vis[ip]], ik)
+
+    def _similarity(self, kf: KeyFrame, cand: KeyFrame, a: np.ndarray, b: np.ndarray, min_inliers: int):
+        """Sim3 RANSAC (SE3 in stereo) on the map points of keypoints kf[a] <-> cand[b]: (S12, inliers) or None."""
+        s = self.atlas.store
+        P1 = transform(kf.T_cw, s.position[kf.points[a]])
+        P2 = transform(cand.T_cw, s.position[cand.points[b]])
+        return sim3_ransac(P1, P2, kf.keypoints[a], cand.keypoints[b], kf.K, cand.K, with_scale=not self.stereo,
+                           seed=self.seed + kf.id, min_inliers=min_inliers)
 
     # --- correction --------------------------------------------------------------------------------------------
     def _correct(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray, loop_points: np.ndarray) -> None:
