@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ruslam.data.height_field import first_crossing
 from ruslam.data.procedural_textures import sample_textures, texture_bank
 
 _EPS = 1e-4
@@ -155,23 +156,13 @@ def _field_hits(hf: _HeightField, o: np.ndarray, dk: np.ndarray, steps: int = 12
     if sel.size == 0:
         return tk
     dd = dk.reshape(3, -1)[:, sel]
-    t0, t_len = t_in.ravel()[sel], (t_out - t_in).ravel()[sel]
 
     def above(t):  # ray height minus terrain height at ray parameter t
         return o32[2] + t * dd[2] - hf(o32[0] + t * dd[0], o32[1] + t * dd[1])
 
-    ts = t0 + t_len * np.linspace(0, 1, steps, dtype=np.float32)[:, None]
-    below = above(ts) <= 0
-    first = np.argmax(below, axis=0)
-    found = np.flatnonzero(below.any(0) & (first > 0))
-    a, b = ts[first[found] - 1, found], ts[first[found], found]
-    dd = dd[:, found]
-    for _ in range(bisections):
-        m = 0.5 * (a + b)
-        m_below = above(m) <= 0
-        a, b = np.where(m_below, a, m), np.where(m_below, m, b)
-    fa, fb = above(a), above(b)
-    tk.reshape(-1)[sel[found]] = a + (b - a) * np.clip(fa / np.maximum(fa - fb, 1e-12), 0.0, 1.0)
+    t, found = first_crossing(above, t_in.ravel()[sel], (t_out - t_in).ravel()[sel], samples=steps,
+                              splits=bisections, method="bisection", min_drop=1e-12)
+    tk.reshape(-1)[sel[found]] = t[found]
     return tk
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ruslam.data.camera import Camera
+from ruslam.data.height_field import first_crossing
 from ruslam.data.readers import Sequence, read_euroc
 from ruslam.errors import InputError, MissingInput
 
@@ -152,16 +153,21 @@ def circuit_poses(cfg: SeafloorConfig) -> np.ndarray:
     pos = np.stack([a * np.cos(s), b * np.sin(s), cfg.altitude + 0.15 * np.sin(3 * s)], axis=1)
     fwd = np.stack([-a * np.sin(s), b * np.cos(s), np.zeros_like(s)], axis=1)
     fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
+    return downward_poses(pos, fwd, cfg.pitch_deg, np.deg2rad(2.0) * np.sin(5 * s))
+
+
+def downward_poses(positions: np.ndarray, forward: np.ndarray, pitch_deg: float, roll: np.ndarray) -> np.ndarray:
+    """T_world_cam [N, 4, 4] of a camera at ``positions`` [N, 3] looking down, its optical axis tilted
+    ``pitch_deg`` from straight down towards the horizontal unit ``forward`` [N, 3] (image down = backwards), then
+    rolled by ``roll`` [N] radians about the optical axis."""
     up = np.array([0.0, 0.0, 1.0])
-    p = np.deg2rad(cfg.pitch_deg)
-    z_c = -np.cos(p) * up + np.sin(p) * fwd  # optical axis: down, tilted forward
-    y_c = -np.cos(p) * fwd - np.sin(p) * up  # image down = backwards
-    x_c = np.cross(y_c, z_c)
-    R = np.stack([x_c, y_c, z_c], axis=2)
-    roll = Rotation.from_rotvec(np.deg2rad(2.0) * np.sin(5 * s)[:, None] * np.array([0.0, 0.0, 1.0])).as_matrix()
-    poses = np.tile(np.eye(4), (cfg.num_frames, 1, 1))
-    poses[:, :3, :3] = R @ roll
-    poses[:, :3, 3] = pos
+    p = np.deg2rad(pitch_deg)
+    z_c = -np.cos(p) * up + np.sin(p) * forward  # optical axis: down, tilted forward
+    y_c = -np.cos(p) * forward - np.sin(p) * up  # image down = backwards
+    R = np.stack([np.cross(y_c, z_c), y_c, z_c], axis=2)
+    poses = np.tile(np.eye(4), (len(positions), 1, 1))
+    poses[:, :3, :3] = R @ Rotation.from_rotvec(roll[:, None] * up).as_matrix()
+    poses[:, :3, 3] = positions
     return poses
 
 
@@ -204,20 +210,9 @@ def render(floor: Seafloor, rays: np.ndarray, T_world_cam: np.ndarray, steps: in
         h = cv2.remap(floor.height, x0 + t * dx, y0 + t * dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         return o[2] + t * dz - h
 
-    t_top = (o[2] - float(floor.height.max())) / -dz
+    t_top = (o[2] - float(floor.height.max())) / -dz  # the march spans the floor's height range
     span = (o[2] - float(floor.height.min())) / -dz - t_top
-    gaps = np.stack([gap(t_top + span * (k / steps)) for k in range(steps + 1)])  # bracket the first crossing
-    k = np.maximum(np.argmax(gaps <= 0, axis=0), 1)[None]  # the last sample never lies above the floor
-    g_lo, g_hi = np.take_along_axis(gaps, k - 1, 0)[0], np.take_along_axis(gaps, k, 0)[0]
-    kf = k[0].astype(np.float32) / steps
-    lo, hi = t_top + span * (kf - np.float32(1 / steps)), t_top + span * kf
-    for _ in range(refine):  # regula falsi inside the bracket
-        m = lo + (hi - lo) * g_lo / np.maximum(g_lo - g_hi, 1e-9)
-        gm = gap(m)
-        above = gm > 0
-        lo, g_lo = np.where(above, m, lo), np.where(above, gm, g_lo)
-        hi, g_hi = np.where(above, hi, m), np.where(above, g_hi, gm)
-    t = (lo + (hi - lo) * g_lo / np.maximum(g_lo - g_hi, 1e-9)).astype(np.float32)
+    t, _ = first_crossing(gap, t_top, span, samples=steps + 1, splits=refine, method="false_position", min_drop=1e-9)
     tg = floor.texture.shape[0] / (2 * floor.half)
     tx = (o[0] + t * d[..., 0] + floor.half) * tg - 0.5
     ty = (o[1] + t * d[..., 1] + floor.half) * tg - 0.5
