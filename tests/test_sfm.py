@@ -90,7 +90,7 @@ def test_unknown_matcher_for_one_extractor_is_one_sentence_exit_2(tmp_path):
     proc = _evaluate(["+task.matcher.sift=superglue", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "task.matcher for sift" in lines[0] and "'superglue'" in lines[0]
+    assert len(lines) == 1 and "task.matcher.sift must be" in lines[0] and "'superglue'" in lines[0]
 
 
 def _evaluate(args, cwd):

@@ -49,10 +49,12 @@ def check(cfg: DictConfig) -> None:
     root = cfg.dataset.get("root")
     if root is not None:
         list_images(Path(str(root)).expanduser(), _every(cfg.dataset))
-    for name in [str(n) for n in cfg.extractors]:
-        matcher = per_extractor(task.get("matcher"), name, "nn")
-        if matcher not in ("nn", "lightglue"):
-            raise InputError(f"task.matcher for {name} must be 'nn' or 'lightglue', got {matcher!r}.")
+    matcher = task.get("matcher")
+    given = _plain(matcher) if OmegaConf.is_config(matcher) or isinstance(matcher, dict) else {None: matcher}
+    for key, value in given.items():
+        if value not in ("nn", "lightglue", None):
+            where = "task.matcher" if key is None else f"task.matcher.{key}"
+            raise InputError(f"{where} must be 'nn' or 'lightglue', got {value!r}.")
 
 
 def per_extractor(setting, name: str, fallback=None):
