@@ -218,18 +218,22 @@ def epipolar_mask(F, x1, x2, max_px: float) -> np.ndarray:
 
 # --- similarity / rigid alignment --------------------------------------------------------------------------------
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> np.ndarray:
-    """Least-squares S (4x4, sR|t) with dst ~ s R src + t (Umeyama 1991); rigid when with_scale is False."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    cov = b.T @ a / len(src)
+    """Least-squares S (4x4, sR|t) with dst ~ s R src + t (Umeyama 1991); rigid when with_scale is False.
+    Batched: src, dst [..., N, 3] -> S [..., 4, 4]."""
+    mu_s, mu_d = src.mean(-2), dst.mean(-2)
+    a, b = src - mu_s[..., None, :], dst - mu_d[..., None, :]
+    cov = np.swapaxes(b, -1, -2) @ a / src.shape[-2]
     U, D, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1
+    S = np.broadcast_to(np.eye(3), cov.shape).copy()
+    S[..., 2, 2] = np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0, -1.0, 1.0)
     R = U @ S @ Vt
-    var = np.mean(np.sum(a * a, 1))
-    s = float(np.trace(np.diag(D) @ S) / var) if with_scale and var > 0 else 1.0
-    return pose_matrix(R, mu_d - s * R @ mu_s, s)
+    var = np.mean(np.sum(a * a, -1), -1)
+    trace = D[..., 0] + D[..., 1] + D[..., 2] * S[..., 2, 2]
+    scale = np.where(var > 0, trace / np.where(var > 0, var, 1.0), 1.0) if with_scale else np.ones_like(var)
+    T = np.broadcast_to(np.eye(4), (*cov.shape[:-2], 4, 4)).copy()
+    T[..., :3, :3] = scale[..., None, None] * R
+    T[..., :3, 3] = mu_d - (T[..., :3, :3] @ mu_s[..., None])[..., 0]
+    return T
 
 
 def sim3_ransac(
@@ -239,30 +243,33 @@ def sim3_ransac(
     """S12 (camera 2 -> camera 1 similarity) from 3D-3D matches P1[i] <-> P2[i] in each camera's frame.
 
     As in ORB-SLAM's Sim3Solver an inlier must reproject within `max_error_px` in both images: S12 P2 onto x1
-    and S12^-1 P1 onto x2. The winner is refitted on all its inliers.
+    and S12^-1 P1 onto x2. Every hypothesis is fitted and scored at once (arrays, not a loop); the first with the
+    most inliers wins and is refitted on all its inliers.
     """
     n = len(P1)
     if n < max(3, min_inliers):
         return None
     rng = np.random.default_rng(seed)
-    eye = np.eye(4)
 
-    def inliers(S):
-        u1, z1 = project(K1, eye, transform(S, P2))
-        u2, z2 = project(K2, eye, transform(inverse_pose(S), P1))
-        return (z1 > 0) & (z2 > 0) & (np.sum((u1 - x1) ** 2, 1) < max_error_px**2) & (
-            np.sum((u2 - x2) ** 2, 1) < max_error_px**2)
+    def inliers(S):  # S [..., 4, 4] -> masks [..., n]
+        A = S[..., :3, :3]
+        u1, z1 = _pinhole(K1, P2 @ np.swapaxes(A, -1, -2) + S[..., None, :3, 3])
+        A_inv = np.linalg.inv(A)
+        t_inv = -(A_inv @ S[..., :3, 3, None])[..., 0]
+        u2, z2 = _pinhole(K2, P1 @ np.swapaxes(A_inv, -1, -2) + t_inv[..., None, :])
+        return (z1 > 0) & (z2 > 0) & (np.sum((u1 - x1) ** 2, -1) < max_error_px**2) & (
+            np.sum((u2 - x2) ** 2, -1) < max_error_px**2)
 
-    best_mask, best_S = None, None
-    for _ in range(iterations):
-        idx = rng.choice(n, 3, replace=False)
-        S = umeyama(P2[idx], P1[idx], with_scale)
-        if not np.all(np.isfinite(S)):
-            continue
-        mask = inliers(S)
-        if best_mask is None or mask.sum() > best_mask.sum():
-            best_mask, best_S = mask, S
-    if best_mask is None or best_mask.sum() < min_inliers:
+    samples = np.array([rng.choice(n, 3, replace=False) for _ in range(iterations)])
+    hypotheses = umeyama(P2[samples], P1[samples], with_scale)
+    finite = np.all(np.isfinite(hypotheses), axis=(1, 2))
+    if not finite.any():
+        return None
+    counts = np.full(iterations, -1)
+    counts[finite] = inliers(hypotheses[finite]).sum(1)
+    best_S = hypotheses[int(np.argmax(counts))]
+    best_mask = inliers(best_S)
+    if best_mask.sum() < min_inliers:
         return None
     for _ in range(2):  # refit on inliers, re-classify
         S = umeyama(P2[best_mask], P1[best_mask], with_scale)
@@ -271,3 +278,10 @@ def sim3_ransac(
             break
         best_mask, best_S = mask, S
     return best_S, best_mask
+
+
+def _pinhole(K: np.ndarray, Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points [..., N, 3] -> (pixels [..., N, 2], depth [..., N]), as `project`."""
+    z = Xc[..., 2]
+    safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    return (Xc[..., :2] / safe[..., None]) @ K[:2, :2].T + K[:2, 2], z
