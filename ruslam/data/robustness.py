@@ -23,7 +23,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ruslam.data.camera import Camera
 from ruslam.data.readers import Sequence, read_euroc
@@ -34,6 +33,7 @@ from ruslam.data.synthetic_sequence import (
     _publish,
     _stamps_ns,
     _write_layout,
+    downward_poses,
     make_seafloor,
     pixel_rays,
     render,
@@ -154,16 +154,7 @@ def survey_poses(cfg: SurveyConfig) -> np.ndarray:
     phase = np.arange(n) * cfg.step_m / cfg.altitude
     pos = np.column_stack([points[:, :2], cfg.altitude * (1 + 0.03 * np.sin(0.7 * phase))])  # gentle heave
     fwd = np.column_stack([np.cos(points[:, 2]), np.sin(points[:, 2]), np.zeros(n)])
-    up = np.array([0.0, 0.0, 1.0])
-    p = np.deg2rad(cfg.pitch_deg)
-    z_c = -np.cos(p) * up + np.sin(p) * fwd  # optical axis
-    y_c = -np.cos(p) * fwd - np.sin(p) * up  # image down = backwards
-    R = np.stack([np.cross(y_c, z_c), y_c, z_c], axis=2)
-    roll = Rotation.from_rotvec(np.deg2rad(1.5) * np.sin(1.3 * phase)[:, None] * up).as_matrix()
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    poses[:, :3, :3] = R @ roll
-    poses[:, :3, 3] = pos
-    return poses
+    return downward_poses(pos, fwd, cfg.pitch_deg, np.deg2rad(1.5) * np.sin(1.3 * phase))
 
 
 # ------------------------------------------------------------------------------------------------ the seafloor
