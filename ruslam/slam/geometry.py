@@ -25,10 +25,14 @@ def pose_matrix(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
 
 def project(K: np.ndarray, T_cw: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World points [N, 3] -> (pixels [N, 2], depth [N])."""
-    Xc = transform(T_cw, X)
-    z = Xc[:, 2]
+    return _pinhole(K, transform(T_cw, X))
+
+
+def _pinhole(K: np.ndarray, Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points [..., N, 3] -> (pixels [..., N, 2], depth [..., N])."""
+    z = Xc[..., 2]
     safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
-    return (Xc[:, :2] / safe[:, None]) @ K[:2, :2].T + K[:2, 2], z
+    return (Xc[..., :2] / safe[..., None]) @ K[:2, :2].T + K[:2, 2], z
 
 
 def triangulate(K1, T1_cw, x1, K2, T2_cw, x2) -> np.ndarray:
@@ -278,10 +282,3 @@ def sim3_ransac(
             break
         best_mask, best_S = mask, S
     return best_S, best_mask
-
-
-def _pinhole(K: np.ndarray, Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame points [..., N, 3] -> (pixels [..., N, 2], depth [..., N]), as `project`."""
-    z = Xc[..., 2]
-    safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
-    return (Xc[..., :2] / safe[..., None]) @ K[:2, :2].T + K[:2, 2], z
