@@ -7,6 +7,7 @@ import numpy as np
 from ruslam.models.feature_matching import match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.loop_closing import KeyFrameDatabase, LoopCloser, LoopConfig
+from ruslam.slam.geometry import pose_matrix
 from ruslam.slam.map import Frame, KeyFrame, Map
 
 K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
@@ -49,6 +50,27 @@ def test_query_ranks_and_excludes():
     assert db.query(base, k=2, exclude={kfs[1]}) == kfs[2:4]
     scores = db.scores(base)
     assert db.query(base, k=5, min_score=float(scores[2]) + 1e-6) == [kfs[1]]
+
+
+def test_a_culled_keyframe_leaves_the_database_and_frees_its_arrays():
+    rng = np.random.default_rng(3)
+    m = Atlas().active
+    vectors = rng.normal(size=(4, 4096))
+    kfs = [m.new_keyframe(Frame(i, float(i), rng.uniform(0, 480, (500, 2)), rng.normal(size=(500, 64)).astype(
+        np.float32), K, (640, 480), global_descriptor=vectors[i].astype(np.float32),
+        T_cw=pose_matrix(np.eye(3), [0.1 * i, 0, 0]))) for i in range(4)]
+    for child, parent in itertools.pairwise(kfs):
+        child.parent = parent
+    db = KeyFrameDatabase()
+    for k in kfs[:3]:
+        db.add(k)
+    m.remove_keyframe(kfs[2])
+    assert kfs[2].descriptors.base is None and kfs[2].descriptors.size == 0 and kfs[2].keypoints.size == 0 and kfs[2].global_descriptor is None
+    assert np.allclose(kfs[2].pose(), pose_matrix(np.eye(3), [0.2, 0, 0]))  # still posed through its parent
+    db.add(kfs[3])
+    assert db.keyframes == [kfs[0], kfs[1], kfs[3]] and len(db) == 3
+    unit = vectors[[0, 1, 3]] / np.linalg.norm(vectors[[0, 1, 3]], axis=1, keepdims=True)
+    assert np.allclose(db.scores(vectors[0]), 1.0 - np.linalg.norm(unit - unit[0], axis=1), atol=1e-6)
 
 
 def _loop_closer(consistency=3):

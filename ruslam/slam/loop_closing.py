@@ -71,6 +71,11 @@ class KeyFrameDatabase:
         return self._n
 
     def add(self, kf: KeyFrame) -> None:
+        alive = [i for i, k in enumerate(self.keyframes) if not k.is_bad]
+        if len(alive) < self._n:  # culled keyframes leave (ORB-SLAM's KeyFrameDatabase::erase)
+            self.keyframes = [self.keyframes[i] for i in alive]
+            self.vectors[: len(alive)] = self.vectors[alive]
+            self._n = len(alive)
         v = np.asarray(kf.global_descriptor, np.float64).ravel()
         v = v / max(float(np.linalg.norm(v)), 1e-12)
         if self.vectors is None:

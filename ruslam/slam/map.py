@@ -135,6 +135,14 @@ class KeyFrame(Frame):
             return self.scale
         return self.scale * self.parent.current_scale() / self.T_parent_scale
 
+    def release(self) -> None:
+        """A culled keyframe keeps only its place in the spanning tree (the trajectory records point at it): its
+        keypoints, descriptors and global descriptor are dropped, or a long run grows by every keyframe culled."""
+        # copies: an empty slice is a view that would keep the whole array alive
+        self.keypoints, self.descriptors = self.keypoints[:0].copy(), self.descriptors[:0].copy()
+        self.points, self.outliers = self.points[:0].copy(), self.outliers[:0].copy()
+        self.global_descriptor = self.right = self.depth = None
+
 
 class PointStore:
     """Every map point of one run as a row of arrays (its id), shared by the maps of the run's Atlas.
@@ -188,6 +196,12 @@ class PointStore:
     def add_observation(self, j: int, kf: KeyFrame, index: int) -> None:
         self.observations[j][kf] = index
         kf.points[index] = j
+
+    def retire(self, j: int) -> None:
+        """A removed or merged point: marked bad, its observations and cache keys dropped (its row stays)."""
+        self.bad[j] = True
+        self.observations[j] = {}
+        self.normal_key[j] = self.descriptor_key[j] = None
 
     def alive(self, ids: np.ndarray) -> np.ndarray:
         """The ids that name a live point (not -1, not culled or fused away), in their order."""
@@ -369,6 +383,7 @@ class Map:
             self.covisibility.get(o, {}).pop(kf, None)
         kf.is_bad = True
         self.keyframes.remove(kf)
+        kf.release()
 
     # --- points ----------------------------------------------------------------------------------------------
     def new_point(self, position: np.ndarray, descriptor: np.ndarray, reference: KeyFrame) -> int:
@@ -377,11 +392,10 @@ class Map:
         return j
 
     def remove_point(self, j: int) -> None:
-        self.store.bad[j] = True
         for kf, i in self.store.observations[j].items():
             if kf.points[i] == j:
                 kf.points[i] = -1
-        self.store.observations[j] = {}
+        self.store.retire(j)
         self.points.discard(j)
 
     def replace_point(self, old: int, new: int) -> None:
@@ -397,7 +411,6 @@ class Map:
                 s.add_observation(new, kf, i)
         s.visible[new] += s.visible[old]
         s.found[new] += s.found[old]
-        s.observations[old] = {}
-        s.bad[old] = True
+        s.retire(old)
         s.replaced_by[old] = new
         self.points.discard(old)
