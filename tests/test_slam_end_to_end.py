@@ -215,3 +215,15 @@ def test_two_view_odometry_baseline_on_real_pixels(quarter):
                                    SLAMConfig(progress=False))
     assert result.num_maps == 1 and len(result) == len(quarter)
     assert _ape_fraction(quarter, result) <= 0.05
+
+
+def test_two_view_odometry_poses_frames_that_wait_for_parallax(cache):
+    """At four times the frame rate most frames move too little to fix a step: they wait on the last posed frame and
+    are posed by interpolation, so every frame keeps a pose in one segment."""
+    from ruslam.slam import two_view_odometry
+
+    slow = synthetic_sequence("clear", cache_dir=cache, progress=False, num_frames=160, laps=0.25, **SMALL)
+    result = two_view_odometry.run(slow, load_extractor("orb", max_keypoints=KEYPOINTS["orb"]),
+                                   SLAMConfig(progress=False))
+    assert result.num_maps == 1 and len(result) == len(slow)
+    assert _ape_fraction(slow, result) <= 0.05

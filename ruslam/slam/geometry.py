@@ -8,6 +8,7 @@ so the synchronous mode reproduces a run exactly.
 from __future__ import annotations
 
 import cv2
+import gtsam
 import numpy as np
 
 from ruslam.slam.map import inverse_pose, transform
@@ -173,6 +174,12 @@ def two_view_initialization(
     T2 = T2.copy()
     T2[:3, 3] /= median_depth
     return T2, X, good, model
+
+
+def interpolate_pose(T1: np.ndarray, T2: np.ndarray, a: float) -> np.ndarray:
+    """The pose `a` of the way from T1 to T2, on SE(3)."""
+    step = gtsam.Pose3.Logmap(gtsam.Pose3(T2 @ inverse_pose(T1)))
+    return gtsam.Pose3.Expmap(a * step).matrix() @ T1
 
 
 def step_min_parallax_deg(K: np.ndarray, sigma: float, depth_error: float = 0.5) -> float:

@@ -19,12 +19,17 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
 
 from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
-from ruslam.slam.geometry import CHI2_2DOF, solve_pnp_ransac, step_min_parallax_deg, two_view_initialization
+from ruslam.slam.geometry import (
+    CHI2_2DOF,
+    interpolate_pose,
+    solve_pnp_ransac,
+    step_min_parallax_deg,
+    two_view_initialization,
+)
 from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
@@ -63,12 +68,6 @@ class TrackingConfig:
     bridge: bool = True  # lost: the motion from the last tracked frame by two-view geometry, in the same map
     local_map_fallback: bool = True  # last fallback: the local map by descriptor + PnP RANSAC
     last_frame_fallback: bool = True  # first fallback: the last frame's points by descriptor (fast turns)
-
-
-def _interpolated(T1: np.ndarray, T2: np.ndarray, a: float) -> np.ndarray:
-    """The pose `a` of the way from T1 to T2, on SE(3)."""
-    step = gtsam.Pose3.Logmap(gtsam.Pose3(T2 @ inverse_pose(T1)))
-    return gtsam.Pose3.Expmap(a * step).matrix() @ T1
 
 
 class Tracker:
@@ -336,7 +335,7 @@ class Tracker:
         `min_inliers`."""
         points = self.map.sorted_points()
         for f in self.init_pending:
-            f.T_cw = _interpolated(kf1.T_cw, kf2.T_cw, (f.index - kf1.index) / (kf2.index - kf1.index))
+            f.T_cw = interpolate_pose(kf1.T_cw, kf2.T_cw, (f.index - kf1.index) / (kf2.index - kf1.index))
             f.clear_points()
             if self._search_points(f, points, self.cfg.window_radius) >= 20 and \
                     self._optimize(f) >= self.cfg.min_inliers:
@@ -354,7 +353,7 @@ class Tracker:
         for f, kf1, kf2 in self.initial_gaps:
             reference = next((k for k in (kf2, kf1) if not k.is_bad), None)  # a live one: records are relative
             f.points = self.store.resolve(f.points)
-            f.T_cw = _interpolated(kf1.pose(), kf2.pose(), (f.index - kf1.index) / (kf2.index - kf1.index))
+            f.T_cw = interpolate_pose(kf1.pose(), kf2.pose(), (f.index - kf1.index) / (kf2.index - kf1.index))
             if reference is not None and self._optimize(f) >= self.cfg.min_inliers:
                 out.append((f, reference))
         return out
