@@ -160,12 +160,14 @@ def pose_graph_optimization(
         values.insert(X(i), to_var(inverse_pose(S)))  # variable = S_wi
     dim = 7 if similarity else 6
     between = gtsam.BetweenFactorSimilarity3 if similarity else gtsam.BetweenFactorPose3
-    equality = gtsam.NonlinearEqualitySimilarity3 if similarity else gtsam.NonlinearEqualityPose3
+    prior = gtsam.PriorFactorSimilarity3 if similarity else gtsam.PriorFactorPose3
+    hold = gtsam.noiseModel.Isotropic.Sigma(dim, 1e-6)  # a tight prior: NonlinearEquality's constrained noise model
+    # is eliminated by QR, 58 s against 0.16 s for one solve of a 243-keyframe graph with 16,020 edges
     for (i, j), S_ij, w in zip(edges, relative, weights, strict=True):
         noise = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / np.sqrt(w))
         graph.add(between(X(int(i)), X(int(j)), to_var(S_ij), noise))
     for i in fixed:
-        graph.add(equality(X(int(i)), to_var(inverse_pose(poses[i]))))
+        graph.add(prior(X(int(i)), to_var(inverse_pose(poses[i])), hold))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
