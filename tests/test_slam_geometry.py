@@ -80,7 +80,7 @@ def test_two_view_initialization_recovers_motion_up_to_scale(planar):
     out = two_view_initialization(x1, x2, K, seed=0)
     assert out is not None
     T_est, X_est, good, model = out
-    assert model == ("homography" if planar else "fundamental")
+    assert model == ("homography" if planar else "essential")
     assert good.mean() > 0.9
     scale = np.median(X[good, 2])  # the estimate has unit median depth
     assert np.abs(T_est[:3, 3] * scale - T2[:3, 3]).max() < 1e-2
@@ -131,6 +131,57 @@ def test_a_two_view_step_finds_the_motion_among_two_thirds_outliers():
             t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
             found += np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))) < 15
     assert found >= 8
+
+
+def test_initialization_from_a_hundred_noisy_points_finds_the_motion():
+    """Weak texture leaves ~100 matches with 1 px of noise and 30 wrong ones: the calibrated 5-point essential
+    matrix gets the translation within 10 deg for most such pairs; a fundamental matrix (7 degrees of freedom) gave
+    no model for 8 of 20 and was over 10 deg off for 9 of the other 12."""
+    found = 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        X = cloud(100, seed=seed, depth=(3, 8))
+        T2 = se3_exp(np.array([0.02, 0.05, 0.0, -0.3, 0.05, 0.1]))
+        x1, _ = project(K, np.eye(4), X)
+        x2, _ = project(K, T2, X)
+        noise = rng.normal(0, 1.0, (2, 100, 2))
+        wrong = rng.uniform([0, 0], [640, 480], (2, 30, 2))
+        out = two_view_initialization(np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]], K, seed=seed)
+        if out is not None:
+            t = out[0][:3, 3] / np.linalg.norm(out[0][:3, 3])
+            found += np.degrees(np.arccos(np.clip(t @ T2[:3, 3] / np.linalg.norm(T2[:3, 3]), -1, 1))) < 10
+    assert found >= 14
+
+
+def _turn_with_outliers(seed, inliers=30, outliers=100):
+    """A camera 0.3 m ahead of a vertical axis turning 18 deg (a crawler turning across dropped frames): the near
+    points have parallax, the far ones little; `inliers` matches with 0.7 px of noise among random `outliers`."""
+    rng = np.random.default_rng(seed)
+    X = cloud(inliers, seed=seed, depth=(1.5, 6))
+    T2 = se3_exp(np.array([0.0, np.radians(18), 0.0, 0, 0, 0]))
+    centre = 0.3 * np.array([-np.sin(np.radians(18)), 0.0, np.cos(np.radians(18)) - 1.0])
+    T2[:3, 3] = -T2[:3, :3] @ centre
+    x1, _ = project(K, np.eye(4), X)
+    x2, _ = project(K, T2, X)
+    noise = rng.normal(0, 0.7, (2, inliers, 2))
+    wrong = rng.uniform([0, 0], [640, 480], (2, outliers, 2))
+    return np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]], T2
+
+
+def test_a_two_view_step_finds_a_turn_from_thirty_inliers():
+    """Two-view geometry fits the calibrated 5-point essential matrix: with F's two extra degrees of freedom, 30
+    inliers among 100 outliers gave the turn (within 2 deg, its translation within 20 deg) for 10 of 20 pairs."""
+    found = 0
+    for seed in range(20):
+        x1, x2, T2 = _turn_with_outliers(seed)
+        out = two_view_initialization(x1, x2, K, seed=seed, min_parallax_deg=0.2, min_points=20, step=True)
+        if out is not None:
+            t = out[0][:3, 3] / np.linalg.norm(out[0][:3, 3])
+            t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
+            R_error = out[0][:3, :3] @ T2[:3, :3].T
+            found += (np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))) < 20) and \
+                np.degrees(np.arccos(np.clip((np.trace(R_error) - 1) / 2, -1, 1))) < 2
+    assert found >= 15
 
 
 def test_two_view_initialization_refuses_pure_rotation():

@@ -128,22 +128,26 @@ def _rotation_deg(T: np.ndarray) -> float:
 
 def _two_view_model(x1, x2, K, seed, method, iterations, min_parallax_deg, min_points, homography_ratio, sigma,
                     prior_R, step):
-    """H and F by one robust estimator (`method`), the better-scoring model decomposed: (best motion or None, name)."""
+    """H and E by one robust estimator (`method`), the better-scoring model decomposed: (best motion or None, name)."""
     cv2.setRNGSeed(seed)
     H, _ = cv2.findHomography(x1, x2, method, 2.0 * sigma, maxIters=iterations, confidence=0.999)
     cv2.setRNGSeed(seed)
-    F, _ = cv2.findFundamentalMat(x1, x2, method, 1.0 * sigma, 0.999, iterations)
+    try:
+        E, _ = cv2.findEssentialMat(x1, x2, K, method, 0.999, 1.0 * sigma, maxIters=iterations)
+    except cv2.error:  # the 5-point polynomial degenerates on exact pure rotations
+        E = None
+    E = E[:3] if E is not None and E.shape[0] >= 3 else None  # the 5-point solver may return several
+    K_inv = np.linalg.inv(K)
     s_h = _homography_score(H, x1, x2, sigma) if H is not None else 0.0
-    s_f = _fundamental_score(F[:3], x1, x2, sigma) if F is not None and F.shape[0] >= 3 else 0.0
-    if s_h + s_f <= 0:
+    s_e = _fundamental_score(K_inv.T @ E @ K_inv, x1, x2, sigma) if E is not None else 0.0
+    if s_h + s_e <= 0:
         return None, None
-    if s_h / (s_h + s_f) > homography_ratio:
+    if s_h / (s_h + s_e) > homography_ratio:
         model = "homography"
         _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
         candidates = list(zip(Rs, ts, strict=True))
     else:
-        model = "fundamental"
-        E = K.T @ F[:3] @ K
+        model = "essential"
         R1, R2, t = cv2.decomposeEssentialMat(E)
         candidates = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
     return _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma, prior_R=prior_R,
@@ -155,19 +159,22 @@ def two_view_initialization(
     min_points: int = 50, homography_ratio: float = 0.40, sigma: float = 1.0, prior_R: np.ndarray | None = None,
     step: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
-    """Monocular map initialisation from matches x1 <-> x2 (ORB-SLAM: score H and F, keep the better model).
+    """Monocular map initialisation from matches x1 <-> x2 (ORB-SLAM: score H against the epipolar model, keep the
+    better one). The epipolar model is the calibrated 5-point essential matrix (keypoints are undistorted with a
+    known K), not ORB-SLAM's F: F's two extra degrees of freedom absorb noise and outliers, and with ~100 noisy
+    matches its translation came out over 10 deg off for most pairs (tests/test_slam_geometry.py).
 
     Returns (T2_cw with camera 1 at the origin, world points [N, 3], valid mask [N], model name) with the scene
     scaled to unit median depth in camera 1, or None when the geometry is not trustworthy (too little parallax,
     ambiguous solutions, too few points). `sigma` is the keypoint noise in px: models are scored against it, so a
-    learned extractor's noisier keypoints do not make F (degenerate on a flat seafloor) look better than H.
+    learned extractor's noisier keypoints do not make E look better than H on a flat seafloor.
     `prior_R`: the expected rotation of camera 2 relative to camera 1 (a motion model), None for no rotation;
     `step`: a frame-to-frame step (bridge, odometry) rather than a map's first points: the median parallax is
     tested, and of two close hypotheses the one nearer the prior is taken.
     A step's models come first from locally optimised RANSAC (OpenCV's USAC, adaptive iterations): with a third of
     its matches right, 500 plain samples return no model or one off by tens of degrees; when that motion fails the
     checks, plain RANSAC's is tried (on repeated tiles the two differ). A map's first points keep plain RANSAC, whose
-    models the 0.40 H-vs-F ratio was set with (with USAC's F, DEV `hard` and `pitch58_s3` started worse).
+    models the 0.40 H-vs-epipolar ratio was set with (with USAC, DEV `hard` and `pitch58_s3` started worse).
     """
     if len(x1) < max(min_points, 8):
         return None
