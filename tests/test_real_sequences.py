@@ -47,7 +47,18 @@ def test_xfeat_keeps_the_pool_run_in_one_map(shared_data):
     seq = _sequence(shared_data, "subvo_pool_first110")
     result, ape_share = _run(seq, "xfeat")
     assert result.num_maps == 1 and result.tracked_ratio >= 0.95
-    assert ape_share <= 0.05  # measured 2.6 %: the 2 % target is not reached
+    assert ape_share <= 0.05  # measured 3.3 %: the 2 % target is not reached
+
+
+def test_orb_crosses_the_pool_runs_13_s_gap_in_one_map(shared_data):
+    """Frames 88 and 89 are 13 s apart and the crawler turned ~18 deg in place between them: tracking and
+    relocalisation fail, and a bridge by two-view geometry (34 of 167 matches on the essential matrix) keeps the
+    frames after the gap in the same map."""
+    seq = _sequence(shared_data, "subvo_pool_first110")
+    result, ape_share = _run(seq, "orb")
+    assert (89, 88) in result.bridges
+    assert result.num_maps == 1 and result.tracked_ratio >= 0.95
+    assert ape_share <= 0.03  # measured 2.3 %
 
 
 def test_orb_tracks_the_handheld_desk_sequence(shared_data):

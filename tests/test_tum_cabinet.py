@@ -38,10 +38,12 @@ def test_orbslam_orb_leaves_no_frame_unusable(cabinet):
 
 
 @pytest.mark.slow
-def test_xfeat_with_lighterglue_tracks_the_cabinet(cabinet):
-    """The SLAM with XFeat as `python evaluate.py task=slam` runs it: LighterGlue (the evaluation's pair matcher)
-    gives initialisation and the descriptor fallbacks the matches that nearest neighbours lack on this weakly
-    textured, wide-baseline sequence. With kNN alone: 7 % of the frames in 3 maps (measured, BENCHMARKS.md)."""
+@pytest.mark.parametrize("name, max_ape_share", [("xfeat", 0.10), ("uwnet_xfeat", 0.06)])
+def test_learned_extractors_track_the_whole_cabinet_in_one_map(cabinet, name, max_ape_share):
+    """The SLAM as `python evaluate.py task=slam` runs it: LighterGlue (the evaluation's pair matcher) gives
+    initialisation and the descriptor fallbacks the matches that nearest neighbours lack on this weakly textured,
+    wide-baseline sequence (XFeat with kNN alone: 7 % of the frames in 3 maps), and the essential matrix initialises
+    from the first two keyframes (F: XFeat from frame 4, UWNet 66 % in 2 maps)."""
     from conftest import compose
 
     from ruslam.data.readers import Trajectory
@@ -50,11 +52,12 @@ def test_xfeat_with_lighterglue_tracks_the_cabinet(cabinet):
     from ruslam.slam.system import as_config, run
 
     cfg = compose("evaluate", ["task=slam", "slam.progress=false"])
-    built, _ = slam_extractors(["xfeat"], cfg)
+    built, _ = slam_extractors([name], cfg)
     seq = read_sequence(cabinet)
-    result = run(seq, built["xfeat"], as_config(slam_config_for(cfg, "xfeat")))
-    assert result.num_maps == 1 and result.tracked_ratio >= 0.8
+    result = run(seq, built[name], as_config(slam_config_for(cfg, name)))
+    assert result.num_maps == 1 and result.tracked_ratio >= 0.95
     ape = evaluate_trajectory(Trajectory(result.timestamps, result.poses), seq.groundtruth, "sim3").ape_rmse
-    # not diverged by the evaluation's rule (`task.failure.max_ape_fraction`); measured 8.6 %: the monocular scale
-    # drift around the cabinet moved between 6 and 13 % of the path with how the early BAs fix the free scale
-    assert ape <= 0.10 * seq.groundtruth.path_length()
+    # measured 5.2 % (XFeat) and 2.2 % (UWNet): XFeat's is monocular scale drift around the cabinet, which has
+    # moved between 5 and 13 % of the path with how the early BAs fix the free scale; 10 % is the evaluation's
+    # divergence rule, 6 % the bound the project holds UWNet to
+    assert ape <= max_ape_share * seq.groundtruth.path_length()
