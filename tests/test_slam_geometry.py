@@ -107,16 +107,22 @@ def test_two_view_initialization_picks_the_real_motion_over_a_flat_seafloor(nois
     assert np.abs(T_est[:3, :3] - T2[:3, :3]).max() < 0.02
 
 
-def _motion_with_outliers(seed, inliers=60, outliers=120):
-    """A 0.5 m step with 5 deg of rotation: `inliers` matches with 0.5 px of noise among random `outliers`."""
+def _matches(T2, seed, inliers, outliers, noise_px, depth):
+    """`inliers` points of a random cloud seen from the origin and from T2, with `noise_px` of keypoint noise, among
+    random `outliers`."""
     rng = np.random.default_rng(seed)
-    X = cloud(inliers, seed=seed, depth=(3, 6))
-    T2 = se3_exp(np.array([0.0, 0.087, 0.0, -0.5, 0.05, 0.1]))
+    X = cloud(inliers, seed=seed, depth=depth)
     x1, _ = project(K, np.eye(4), X)
     x2, _ = project(K, T2, X)
-    noise = rng.normal(0, 0.5, (2, inliers, 2))
+    noise = rng.normal(0, noise_px, (2, inliers, 2))
     wrong = rng.uniform([0, 0], [640, 480], (2, outliers, 2))
-    return np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]], T2
+    return np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]]
+
+
+def _motion_with_outliers(seed):
+    """A 0.5 m step with 5 deg of rotation: 60 matches with 0.5 px of noise among 120 random ones."""
+    T2 = se3_exp(np.array([0.0, 0.087, 0.0, -0.5, 0.05, 0.1]))
+    return *_matches(T2, seed, 60, 120, 0.5, (3, 6)), T2
 
 
 def test_a_two_view_step_finds_the_motion_among_two_thirds_outliers():
@@ -138,34 +144,22 @@ def test_initialization_from_a_hundred_noisy_points_finds_the_motion():
     matrix gets the translation within 10 deg for most such pairs; a fundamental matrix (7 degrees of freedom) gave
     no model for 8 of 20 and was over 10 deg off for 9 of the other 12."""
     found = 0
+    T2 = se3_exp(np.array([0.02, 0.05, 0.0, -0.3, 0.05, 0.1]))
     for seed in range(20):
-        rng = np.random.default_rng(seed)
-        X = cloud(100, seed=seed, depth=(3, 8))
-        T2 = se3_exp(np.array([0.02, 0.05, 0.0, -0.3, 0.05, 0.1]))
-        x1, _ = project(K, np.eye(4), X)
-        x2, _ = project(K, T2, X)
-        noise = rng.normal(0, 1.0, (2, 100, 2))
-        wrong = rng.uniform([0, 0], [640, 480], (2, 30, 2))
-        out = two_view_initialization(np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]], K, seed=seed)
+        out = two_view_initialization(*_matches(T2, seed, 100, 30, 1.0, (3, 8)), K, seed=seed)
         if out is not None:
             t = out[0][:3, 3] / np.linalg.norm(out[0][:3, 3])
             found += np.degrees(np.arccos(np.clip(t @ T2[:3, 3] / np.linalg.norm(T2[:3, 3]), -1, 1))) < 10
     assert found >= 14
 
 
-def _turn_with_outliers(seed, inliers=30, outliers=100):
+def _turn_with_outliers(seed):
     """A camera 0.3 m ahead of a vertical axis turning 18 deg (a crawler turning across dropped frames): the near
-    points have parallax, the far ones little; `inliers` matches with 0.7 px of noise among random `outliers`."""
-    rng = np.random.default_rng(seed)
-    X = cloud(inliers, seed=seed, depth=(1.5, 6))
+    points have parallax, the far ones little; 30 matches with 0.7 px of noise among 100 random ones."""
     T2 = se3_exp(np.array([0.0, np.radians(18), 0.0, 0, 0, 0]))
     centre = 0.3 * np.array([-np.sin(np.radians(18)), 0.0, np.cos(np.radians(18)) - 1.0])
     T2[:3, 3] = -T2[:3, :3] @ centre
-    x1, _ = project(K, np.eye(4), X)
-    x2, _ = project(K, T2, X)
-    noise = rng.normal(0, 0.7, (2, inliers, 2))
-    wrong = rng.uniform([0, 0], [640, 480], (2, outliers, 2))
-    return np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]], T2
+    return *_matches(T2, seed, 30, 100, 0.7, (1.5, 6)), T2
 
 
 def test_a_two_view_step_finds_a_turn_from_thirty_inliers():
