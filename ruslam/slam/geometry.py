@@ -174,7 +174,7 @@ def two_view_initialization(
     A step's models come first from locally optimised RANSAC (OpenCV's USAC, adaptive iterations): with a third of
     its matches right, 500 plain samples return no model or one off by tens of degrees; when that motion fails the
     checks, plain RANSAC's is tried (on repeated tiles the two differ). A map's first points keep plain RANSAC, whose
-    models the 0.40 H-vs-epipolar ratio was set with (with USAC, DEV `hard` and `pitch58_s3` started worse).
+    models the 0.40 H-vs-epipolar ratio was set with (USAC's H and F started DEV `hard` and `pitch58_s3` worse).
     """
     if len(x1) < max(min_points, 8):
         return None
