@@ -119,6 +119,14 @@ def _matches(T2, seed, inliers, outliers, noise_px, depth):
     return np.r_[x1 + noise[0], wrong[0]], np.r_[x2 + noise[1], wrong[1]]
 
 
+def _errors_deg(T_est, T_true):
+    """(rotation error, angle between the translation directions) of an up-to-scale motion estimate, in degrees."""
+    R_error = T_est[:3, :3] @ T_true[:3, :3].T
+    t, t_true = (T[:3, 3] / np.linalg.norm(T[:3, 3]) for T in (T_est, T_true))
+    return (np.degrees(np.arccos(np.clip((np.trace(R_error) - 1) / 2, -1, 1))),
+            np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))))
+
+
 def _motion_with_outliers(seed):
     """A 0.5 m step with 5 deg of rotation: 60 matches with 0.5 px of noise among 120 random ones."""
     T2 = se3_exp(np.array([0.0, 0.087, 0.0, -0.5, 0.05, 0.1]))
@@ -132,10 +140,7 @@ def test_a_two_view_step_finds_the_motion_among_two_thirds_outliers():
     for seed in range(10):
         x1, x2, T2 = _motion_with_outliers(seed)
         out = two_view_initialization(x1, x2, K, seed=seed, min_points=30, step=True)
-        if out is not None:
-            t = out[0][:3, 3] / np.linalg.norm(out[0][:3, 3])
-            t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
-            found += np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))) < 15
+        found += out is not None and _errors_deg(out[0], T2)[1] < 15
     assert found >= 8
 
 
@@ -147,9 +152,7 @@ def test_initialization_from_a_hundred_noisy_points_finds_the_motion():
     T2 = se3_exp(np.array([0.02, 0.05, 0.0, -0.3, 0.05, 0.1]))
     for seed in range(20):
         out = two_view_initialization(*_matches(T2, seed, 100, 30, 1.0, (3, 8)), K, seed=seed)
-        if out is not None:
-            t = out[0][:3, 3] / np.linalg.norm(out[0][:3, 3])
-            found += np.degrees(np.arccos(np.clip(t @ T2[:3, 3] / np.linalg.norm(T2[:3, 3]), -1, 1))) < 10
+        found += out is not None and _errors_deg(out[0], T2)[1] < 10
     assert found >= 14
 
 
@@ -170,11 +173,8 @@ def test_a_two_view_step_finds_a_turn_from_thirty_inliers():
         x1, x2, T2 = _turn_with_outliers(seed)
         out = two_view_initialization(x1, x2, K, seed=seed, min_parallax_deg=0.2, min_points=20, step=True)
         if out is not None:
-            t = out[0][:3, 3] / np.linalg.norm(out[0][:3, 3])
-            t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
-            R_error = out[0][:3, :3] @ T2[:3, :3].T
-            found += (np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))) < 20) and \
-                np.degrees(np.arccos(np.clip((np.trace(R_error) - 1) / 2, -1, 1))) < 2
+            rotation, translation = _errors_deg(out[0], T2)
+            found += rotation < 2 and translation < 20
     assert found >= 15
 
 
