@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 @dataclass
 class TrackingConfig:
     max_distance_binary: float = 64.0  # Hamming bits (of 256) for ORB
+    window_distance_binary: float = 100.0  # ORB inside a projection window (ORB-SLAM's TH_HIGH): the window
+    # constrains the match; 64 there lost the real pool run's tiles and the desk's scale (BENCHMARKS.md)
     max_distance_float: float = 0.5  # L2 between unit descriptors (0..2); XFeat: correct 0.2-0.46, wrong 0.3-0.5
     # (0.7 let enough wrong matches through that XFeat lost track at 3x the embedded speed, see README)
     ratio: float = 0.8  # kNN ratio test
@@ -83,6 +85,7 @@ class Tracker:
         self.cfg = cfg
         self.binary, self.rig, self.seed = binary, rig, seed  # rig: (K_right, T_c0_c1) for stereo
         self.max_distance = cfg.max_distance_binary if binary else cfg.max_distance_float
+        self.window_distance = cfg.window_distance_binary if binary else cfg.max_distance_float
         self.sigma = cfg.sigma_binary if binary else cfg.sigma_float
         self.noise_radius = np.sqrt(CHI2_2DOF) * self.sigma  # px: keypoints closer than this are one location
         self.state = "init"
@@ -523,7 +526,7 @@ class Tracker:
             if count_visible:
                 np.add.at(self.store.visible, points[vis], 1)
             ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
-                                      radius, self.binary, self.max_distance, self.cfg.window_ratio,
+                                      radius, self.binary, self.window_distance, self.cfg.window_ratio,
                                       available=frame.points < 0, distinct_px=self.noise_radius)
             frame.points[ik] = points[vis[ip]]
         return int(np.count_nonzero(frame.points >= 0))
