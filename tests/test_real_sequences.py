@@ -3,7 +3,7 @@
 
 - `subvo_pool_first110`: a crawler in a tiled pool, 1 Hz with dropped frames, strong radial distortion (real
   underwater);
-- `vamr_desk_handheld`: a handheld wide-angle camera over a desk, 30 Hz (the first 300 frames here).
+- `vamr_desk_handheld`: a handheld wide-angle camera over a desk, 736 frames at 30 Hz.
 """
 
 from __future__ import annotations
@@ -58,12 +58,13 @@ def test_orb_crosses_the_pool_runs_13_s_gap_in_one_map(shared_data):
     result, ape_share = _run(seq, "orb")
     assert (89, 88) in result.bridges
     assert result.num_maps == 1 and result.tracked_ratio >= 0.95
-    assert ape_share <= 0.03  # measured 2.3 %
+    assert ape_share <= 0.03  # measured 1.96 %
 
 
-def test_orb_tracks_the_handheld_desk_sequence(shared_data):
+def test_orb_keeps_the_desk_sequences_scale_to_the_end(shared_data):
+    """The whole desk sequence at one scale: with the 64-bit gate of matching without geometry in the projection
+    windows too, the tracked points' depths fell 20x from frame 480 on (APE 0.84 % of the path)."""
     seq = _sequence(shared_data, "vamr_desk_handheld")
-    result, ape_share = _run(seq, "orb", max_frames=300)
-    assert result.num_maps == 1 and len(result) >= 0.95 * 300
-    assert ape_share <= 0.02
-
+    result, ape_share = _run(seq, "orb")
+    assert result.num_maps == 1 and result.tracked_ratio >= 0.98
+    assert ape_share <= 0.005  # measured 0.28 %
