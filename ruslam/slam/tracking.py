@@ -401,10 +401,11 @@ class Tracker:
         ratio = ref.current_scale() / scale  # a loop or a merge may have rescaled the map since the last frame
         self.last.T_cw = scale_translation(T_lr, ratio) @ ref.pose()  # the reference may have moved too
         if self.velocity is not None:
-            frame.T_cw = scale_translation(self.velocity, ratio) @ self.last.T_cw
+            predicted = scale_translation(self.velocity, ratio) @ self.last.T_cw
             pts = self.store.resolve(self.last.points)
             pts = pts[pts >= 0]
             for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
+                frame.T_cw = predicted.copy()  # the wider windows around the prediction, not the failed optimum
                 frame.clear_points()
                 if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
