@@ -22,7 +22,7 @@ def _sequence(shared_data, name):
     return read_sequence(root)
 
 
-def _run(seq, name, max_frames=None):
+def _run(seq, name):
     from conftest import compose
 
     from ruslam.data.readers import Trajectory
@@ -33,7 +33,6 @@ def _run(seq, name, max_frames=None):
     cfg = compose("evaluate", ["task=slam", "dataset=folder", "dataset.root=.", "slam.progress=false"])
     built, _ = slam_extractors([name], cfg)
     slam = as_config(slam_config_for(cfg, name))
-    slam.max_frames = max_frames
     result = run(seq, built[name], slam)
     gt = seq.groundtruth
     ape = evaluate_trajectory(Trajectory(result.timestamps, result.poses), gt, "sim3").ape_rmse
