@@ -165,6 +165,9 @@ def check_slam(cfg: DictConfig) -> None:
     if dataset.get("select") and dataset.get("sequences") is not None:  # a folder's are found by the run itself
         require_choice("dataset.select", dataset.select, list(OmegaConf.to_container(dataset.sequences, resolve=True)))
     require_choice("slam.sensor", [cfg.slam.get("sensor", "auto")], SLAM_SENSORS)
+    every = dataset.get("every", 1)
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise InputError(f"dataset.every must be a positive integer (keep every n-th frame), got {every!r}.")
     root = dataset.get("root")
     if root != "__embedded__" and (root is None or not Path(str(root)).is_dir()):
         where = f"dataset.root={root} is not a folder" if root else "dataset.root is not set"

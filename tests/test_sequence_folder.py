@@ -100,3 +100,22 @@ def test_a_list_of_names_and_a_missing_root(root, tmp_path):
     with pytest.raises(ValueError, match="no pose"):
         write_tum_trajectory(tmp_path / "empty.txt", Trajectory(np.zeros(0), np.zeros((0, 4, 4))))
     assert not (tmp_path / "empty.txt").exists()
+
+
+def test_every_n_th_frame_a_lower_frame_rate(root, tmp_path):
+    from ruslam.eval.slam_report import run
+
+    for rel in ("mine", "tum/desk", "euroc/MH_tiny"):
+        full, third = read_sequence(root / rel, sensor="stereo"), read_sequence(root / rel, sensor="stereo", every=3)
+        assert np.array_equal(third.timestamps, full.timestamps[[0, 3, 6]])
+        assert third.image_paths == [full.image_paths[i] for i in (0, 3, 6)]  # both cameras of a stereo frame
+        assert len(third.groundtruth) == len(full.groundtruth)  # evaluated on the whole ground truth
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="every must be a positive integer"):
+            read_sequence(root / "mine", every=bad)
+    cfg = compose("evaluate", ["task=slam", "dataset=folder", f"dataset.root={root}", f"out_dir={tmp_path}",
+                               "extractors=[orb]", "dataset.sequences=[mine]", "dataset.every=3",
+                               "task.two_view_vo=[]"])
+    given = []
+    out = run(cfg, slam_run=lambda sequence, *args: given.append(len(sequence)) or _fake(sequence, *args))
+    assert given == [3] and "data, 1 sequence(s) (monocular, 1 frame in 3)" in out["table"]

@@ -9,11 +9,12 @@ What makes a folder a sequence (checked in this order; a sequence's own sub-fold
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
 from ruslam.data.readers import IMAGE_SUFFIXES, Sequence, read_euroc, read_image_folder, read_tum
-from ruslam.errors import MissingInput
+from ruslam.errors import InputError, MissingInput
 
 log = logging.getLogger(__name__)
 FORMATS = ("euroc", "tum", "image_folder")
@@ -58,12 +59,21 @@ def find_sequences(root: str | Path, max_depth: int = 3) -> dict[str, str]:
     return dict(sorted(found.items()))
 
 
-def read_sequence(path: str | Path, sensor: str = "mono", name: str | None = None) -> Sequence:
-    """The sequence in ``path`` whatever its format; ``sensor="stereo"`` uses a second camera where there is one."""
+def read_sequence(path: str | Path, sensor: str = "mono", name: str | None = None, every: int = 1) -> Sequence:
+    """The sequence in ``path`` whatever its format; ``sensor="stereo"`` uses a second camera where there is one.
+    ``every=n`` keeps every n-th frame, a lower frame rate (the ground truth stays whole)."""
     if sensor not in ("mono", "stereo"):
         raise ValueError(f"sensor must be 'mono' or 'stereo', got {sensor!r}.")
-    stereo = sensor == "stereo"
-    path = Path(path)
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise InputError(f"every must be a positive integer (keep every n-th frame), got {every!r}.")
+    sequence = _read(Path(path), sensor == "stereo", name)
+    if every == 1:
+        return sequence
+    return dataclasses.replace(sequence, timestamps=sequence.timestamps[::every],
+                               image_paths=sequence.image_paths[::every])
+
+
+def _read(path: Path, stereo: bool, name: str | None) -> Sequence:
     kind = sequence_format(path) if path.is_dir() else None
     if kind is None:
         raise MissingInput(f"{path} is not a sequence: expected a EuRoC folder (mav0/cam0/), a TUM RGB-D "

@@ -317,7 +317,9 @@ def dataset_label(dataset: DictConfig, opened: dict) -> str:
         return str(dataset.label)
     stereo = [s.stereo for s in opened.values()]
     sensor = "stereo" if all(stereo) else "monocular" if not any(stereo) else "mono and stereo"
-    return f"{Path(str(dataset.root)).name}, {len(opened)} sequence(s) ({sensor})"
+    every = int(dataset.get("every") or 1)
+    rate = f", 1 frame in {every}" if every > 1 else ""
+    return f"{Path(str(dataset.root)).name}, {len(opened)} sequence(s) ({sensor}{rate})"
 
 
 def slam_config_for(cfg, method: str):
