@@ -98,32 +98,35 @@ def _match_masked_binary(desc1, desc2, max_distance, ratio, mutual, mask) -> tup
 def match_in_windows(
     uv: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray, radius,
     binary: bool, max_distance: float, ratio: float = 0.9, available: np.ndarray | None = None,
-    distinct_px: float = 0.0,
+    distinct_px: float = 0.0, rival_radius: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Match projected points uv [M, 2] to keypoints [N, 2] inside a window of `radius` pixels (scalar or [M]).
 
     Best candidate per point by descriptor distance, gated by `max_distance` and a ratio test against the best
-    candidate in the same window that lies more than `distinct_px` from it (keypoints closer than the measurement
-    noise are one image location: a dense detector's neighbours share its descriptor, and a ratio test against
-    them rejects the right match); each keypoint is given to at most one point (the closest in descriptor space).
-    `available` [N] bool masks keypoints already matched. Returns (point indices, keypoint indices).
+    candidate within `rival_radius` (default: the window) that lies more than `distinct_px` from it (keypoints
+    closer than the measurement noise are one image location: a dense detector's neighbours share its descriptor,
+    and a ratio test against them rejects the right match); each keypoint is given to at most one point (the
+    closest in descriptor space). `available` [N] bool masks keypoints already matched. Returns (point indices,
+    keypoint indices).
     """
     empty = (np.zeros(0, int), np.zeros(0, int))
     if len(uv) == 0 or len(keypoints) == 0:
         return empty
     radius = np.broadcast_to(np.asarray(radius, dtype=np.float64), (len(uv),))
+    reach = radius if rival_radius is None else np.maximum(radius, rival_radius)
     kp_tree = cKDTree(keypoints)
-    pairs = cKDTree(uv).sparse_distance_matrix(kp_tree, float(radius.max()), output_type="ndarray")
+    pairs = cKDTree(uv).sparse_distance_matrix(kp_tree, float(reach.max()), output_type="ndarray")
     ip, ik, dist_px = pairs["i"].astype(int), pairs["j"].astype(int), pairs["v"]
-    keep = dist_px <= radius[ip]
+    keep = dist_px <= reach[ip]
     if available is not None:
         keep &= available[ik]
-    ip, ik = ip[keep], ik[keep]
+    ip, ik, dist_px = ip[keep], ik[keep], dist_px[keep]
     if len(ip) == 0:
         return empty
     dd = paired_distances(point_desc[ip], kp_desc[ik], binary)
-    order = np.lexsort((dd, ip))  # by point, then by descriptor distance
-    ip, ik, dd = ip[order], ik[order], dd[order]
+    inside = dist_px <= radius[ip]
+    order = np.lexsort((dd, ~inside, ip))  # by point, the window's candidates first, then by descriptor distance
+    ip, ik, dd, inside = ip[order], ik[order], dd[order], inside[order]
     first = np.ones(len(ip), bool)
     first[1:] = ip[1:] != ip[:-1]
     starts = np.nonzero(first)[0]
@@ -134,7 +137,7 @@ def match_in_windows(
         rival &= np.sum((keypoints[ik] - keypoints[best_ik[group]]) ** 2, 1) > distinct_px**2
     second_d = np.full(len(starts), np.inf, dtype=np.float32)
     np.minimum.at(second_d, group[rival], dd[rival])
-    ok = (best_d <= max_distance) & (best_d < ratio * second_d)
+    ok = inside[starts] & (best_d <= max_distance) & (best_d < ratio * second_d)
     best_ip, best_ik, best_d = best_ip[ok], best_ik[ok], best_d[ok]
     order = np.argsort(best_d, kind="stable")  # one point per keypoint: the closest descriptor wins
     _, unique = np.unique(best_ik[order], return_index=True)

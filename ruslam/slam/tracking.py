@@ -50,6 +50,8 @@ class TrackingConfig:
     sigma_float: float = 1.0  # learned extractors (1.5, for XFeat's heavier error tail, let wrong matches bias poses)
     window_ratio: float = 0.8  # ratio test inside a search window (0.9 let XFeat's look-alike neighbours through)
     window_radius: float = 15.0  # px, constant-velocity search (doubled on failure)
+    window_rivals: float = 2.0  # its ratio test against look-alikes up to this many radii away: in repetitive
+    # texture (tiles, a checkerboard) the window may hold only a copy one period off the point (BENCHMARKS.md)
     local_map_radius: float = 5.0  # px, local-map search
     min_inliers: int = 30  # tracked map points for a frame to count as tracked
     init_min_matches: int = 100
@@ -407,7 +409,8 @@ class Tracker:
             for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
                 frame.T_cw = predicted.copy()  # the wider windows around the prediction, not the failed optimum
                 frame.clear_points()
-                if self._search_points(frame, pts, radius) >= 20 and self._optimize(frame) >= 10:
+                rivals = self.cfg.window_rivals * radius
+                if self._search_points(frame, pts, radius, rival_radius=rivals) >= 20 and self._optimize(frame) >= 10:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
                     return True
         for match in self._matchers():  # every nearest-neighbour fallback first, then the pair matcher's
@@ -512,7 +515,8 @@ class Tracker:
         np.add.at(self.store.found, frame.points[(frame.points >= 0) & ~frame.outliers], 1)
         return inliers >= self.cfg.min_inliers
 
-    def _search_points(self, frame: Frame, points: np.ndarray, radius: float, count_visible=False) -> int:
+    def _search_points(self, frame: Frame, points: np.ndarray, radius: float, count_visible=False,
+                       rival_radius: float | None = None) -> int:
         """Project map points (ids) with frame.T_cw and match them in windows; returns the number of matched points."""
         if len(points):
             X = self.store.position[points]
@@ -528,7 +532,8 @@ class Tracker:
                 np.add.at(self.store.visible, points[vis], 1)
             ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
                                       radius, self.binary, self.window_distance, self.cfg.window_ratio,
-                                      available=frame.points < 0, distinct_px=self.noise_radius)
+                                      available=frame.points < 0, distinct_px=self.noise_radius,
+                                      rival_radius=rival_radius)
             frame.points[ik] = points[vis[ip]]
         return int(np.count_nonzero(frame.points >= 0))
 
