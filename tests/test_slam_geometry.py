@@ -288,6 +288,31 @@ def test_window_ratio_test_ignores_duplicate_detections_of_the_same_location():
     assert len(match_in_windows(point, point_desc, kp, desc, 15.0, **args, distinct_px=2.45)[0]) == 0
 
 
+def test_a_copy_alone_in_the_window_meets_its_rivals_beyond_it():
+    """Repetitive texture, a 24 px period: the prediction is 20 px off, so the 15 px window holds only the copy one
+    period away (4 px from the prediction). Inside the window nothing rivals it; with rivals sought two radii away
+    the point itself (20 px) is one, and the ambiguous match is refused. A distinctive point still matches."""
+    rng = np.random.default_rng(3)
+    corner = rng.normal(size=32).astype(np.float32)
+    corner /= np.linalg.norm(corner)
+    xs = np.arange(0.0, 400.0, 24.0)
+    kp = np.stack([xs, np.full_like(xs, 100.0)], 1)  # a row of identical corners
+    desc = np.repeat(corner[None], len(kp), 0) + rng.normal(0, 0.01, (len(kp), 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    truth = 8
+    prediction = kp[[truth]] + [[-20.0, 0.0]]  # kp[truth - 1] is 4 px away, kp[truth] 20 px
+    args = dict(binary=False, max_distance=0.5, ratio=0.8, distinct_px=2.45)
+    ip, ik = match_in_windows(prediction, desc[[truth]], kp, desc, 15.0, **args)
+    assert ik.tolist() == [truth - 1]  # the copy, alone in the window
+    assert len(match_in_windows(prediction, desc[[truth]], kp, desc, 15.0, **args, rival_radius=30.0)[0]) == 0
+    lone = np.r_[kp, [[150.0, 300.0]]]
+    other = rng.normal(size=(1, 32)).astype(np.float32)
+    other /= np.linalg.norm(other)
+    ip, ik = match_in_windows(lone[[-1]] + [[5.0, 0.0]], other, lone, np.r_[desc, other], 15.0, **args,
+                              rival_radius=30.0)
+    assert ik.tolist() == [len(kp)]
+
+
 def test_map_point_descriptor_is_the_least_median_distance_one_and_follows_observations():
     from ruslam.slam.map import KeyFrame, PointStore, update_descriptors
 

@@ -9,6 +9,7 @@ from slam_fakes import FakeExtractor, FakeSequence
 
 from ruslam.data.readers import Trajectory, read_tum_trajectory
 from ruslam.eval.trajectory import evaluate_trajectory
+from ruslam.models.feature_matching import match_in_windows
 from ruslam.slam import SLAMConfig, run
 
 
@@ -123,6 +124,26 @@ def test_binary_descriptors_that_change_beyond_the_strict_gate_are_found_in_proj
     result = run(seq, Changed(seq, binary=True), SLAMConfig(progress=False))
     assert result.num_maps == 1 and result.tracked_ratio > 0.95
     assert ape_ratio(seq, result, "sim3")[0] < 0.02
+
+
+def test_the_motion_models_ratio_test_sees_look_alikes_two_window_radii_away(monkeypatch):
+    """`tracking.window_rivals`: the constant-velocity windows (15 px) take rivals from 30 px (a copy of a repeated
+    corner alone in the window is refused, `test_a_copy_alone_in_the_window_meets_its_rivals_beyond_it`); the
+    local map's windows around an optimised pose keep theirs."""
+    import ruslam.slam.tracking as tracking
+
+    calls = []
+
+    def spy(uv, point_desc, keypoints, kp_desc, radius, *args, rival_radius=None, **kwargs):
+        calls.append((float(np.max(radius)), rival_radius))
+        return match_in_windows(uv, point_desc, keypoints, kp_desc, radius, *args, rival_radius=rival_radius,
+                                **kwargs)
+
+    monkeypatch.setattr(tracking, "match_in_windows", spy)
+    seq = arc(20)
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert result.tracked_ratio > 0.95
+    assert (15.0, 30.0) in calls and (5.0, None) in calls
 
 
 def test_black_and_corrupt_frames_are_skipped_and_tracking_resumes(caplog):
