@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 class TrackingConfig:
     max_distance_binary: float = 64.0  # Hamming bits (of 256) for ORB
     window_distance_binary: float = 100.0  # ORB inside a projection window (ORB-SLAM's TH_HIGH): the window
-    # constrains the match; 64 there lost the real pool run's tiles and the desk's scale (BENCHMARKS.md)
+    # constrains the match; 64 there lost the real pool run's tiles (BENCHMARKS.md)
     max_distance_float: float = 0.5  # L2 between unit descriptors (0..2); XFeat: correct 0.2-0.46, wrong 0.3-0.5
     # (0.7 let enough wrong matches through that XFeat lost track at 3x the embedded speed, see README)
     ratio: float = 0.8  # kNN ratio test
