@@ -206,6 +206,18 @@ def test_a_sudden_turn_is_tracked_from_the_last_frame(caplog):
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
 
 
+def test_a_loss_that_two_views_share_only_a_few_points_is_bridged_when_confirmed():
+    """Frames 20-31 dropped: frames 19 and 32 share 22 landmarks, too few for tracking, relocalisation or a full
+    bridge (30 points); their motion, confirmed by distinctive matches along its epipolar lines, keeps one map
+    (without the half-strength bridge the run split into two maps of 20 and 12 frames)."""
+    seq = FakeSequence(60, laps=0.5, landmarks=8000)
+    keep = [*range(20), *range(32, 46)]
+    seq.timestamps, seq.poses = seq.timestamps[keep], seq.poses[keep]
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert result.num_maps == 1 and len(result) == len(seq) and (20, 19) in result.bridges
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
 def test_a_keyframe_moved_by_inline_mapping_gives_its_frame_the_new_pose(monkeypatch):
     """A loop correction or a merge moves the whole map while the keyframe that triggered it is inserted: the frame
     that became that keyframe must take the moved pose. Here the map is shifted by 0.5 m at the 8th keyframe; a

@@ -173,19 +173,17 @@ class Tracker:
         prev.points = self.store.resolve(prev.points)
         c = self.cfg
         prior = self.velocity[:3, :3] if self.velocity is not None and self.last is prev else None
-        out = None
+        out, tried = None, []
         for ia, ib, guided in self._bridge_matches(prev, frame):
-            if len(ia) >= c.min_inliers:
-                out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K,
-                                              self.seed + frame.index, step_min_parallax_deg(frame.K, self.sigma),
-                                              c.min_inliers, sigma=self.sigma if self.binary else c.init_sigma_float,
-                                              prior_R=prior, step=True)
-            if out is not None and guided and self._distinctive_along(out[0], prev, frame) < c.min_inliers // 2:
-                log.debug("Frame %d: bridge from frame %d refused: too few distinctive matches along its epipolar "
-                          "lines.", frame.index, prev.index)
-                out = None
+            tried.append((ia, ib))
+            out = self._bridge_motion(prev, frame, ia, ib, c.min_inliers, guided, prior)
             if out is not None:
                 break
+        else:  # every match set failed: a motion with half the points, confirmed along its epipolar lines
+            for ia, ib in tried:
+                out = self._bridge_motion(prev, frame, ia, ib, c.min_inliers // 2, True, prior)
+                if out is not None:
+                    break
         if out is None:
             log.debug("Frame %d: no bridge from frame %d (two-view geometry failed).", frame.index, prev.index)
             return False
@@ -229,6 +227,21 @@ class Tracker:
         log.info("Frame %d: tracking lost; bridged from frame %d by two-view geometry (%s, %d points, %s scale).",
                  frame.index, prev.index, model, len(ia), "map" if np.count_nonzero(has) >= 10 else "speed")
         return True
+
+    def _bridge_motion(self, prev: Frame, frame: Frame, ia, ib, min_points: int, confirm: bool, prior):
+        """The two-view motion prev -> frame from matches ia <-> ib that triangulates `min_points` points, or None;
+        with `confirm`, only when distinctive matches along its epipolar lines confirm it (`_distinctive_along`)."""
+        c = self.cfg
+        if len(ia) < min_points:
+            return None
+        out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K, self.seed + frame.index,
+                                      step_min_parallax_deg(frame.K, self.sigma), min_points,
+                                      sigma=self.sigma if self.binary else c.init_sigma_float, prior_R=prior, step=True)
+        if out is not None and confirm and self._distinctive_along(out[0], prev, frame) < c.min_inliers // 2:
+            log.debug("Frame %d: bridge from frame %d refused: too few distinctive matches along its epipolar lines.",
+                      frame.index, prev.index)
+            return None
+        return out
 
     def _bridge_matches(self, prev: Frame, frame: Frame):
         """Match sets for a bridge, cheapest first, each with whether its motion must be confirmed by distinctive
