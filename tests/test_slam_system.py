@@ -323,3 +323,17 @@ def test_initial_gap_frames_follow_a_later_rescale_of_the_map(monkeypatch):
     S = umeyama(P[later], G[later])
     errors = np.linalg.norm((S[:3, :3] @ P.T).T + S[:3, 3] - G, axis=1)
     assert errors[gap].max() < 3 * np.median(errors[later]) + 0.01
+
+
+def test_frames_before_a_late_initialisation_are_tracked_backwards():
+    """The camera stands still for the first 45 frames: no parallax, so the initialisation's reference is renewed
+    after `init_max_frames` (40) and the map starts at frame 41 or later; the frames before it get their poses by
+    tracking backwards from the map's first keyframe at the end of the run (before, 41 frames had none)."""
+    seq = FakeSequence(100, laps=0.5, landmarks=8000)
+    seq.poses[:45] = seq.poses[45]
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert result.initialized_at > 40
+    assert result.num_maps == 1 and len(result) == len(seq)
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+    still = result.poses[:45, :3, 3]
+    assert np.ptp(still, axis=0).max() < 0.01 * np.ptp(result.poses[:, :3, 3], axis=0).max()

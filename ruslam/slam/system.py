@@ -198,8 +198,8 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                     atlas.record(kf1.index, kf1.timestamp, kf1, kf1.T_cw)
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
-        keyframes.catch_up(0)  # the map is final: the frames between initial keyframes get their poses on it
-        for frame, reference in tracker.pose_initial_gaps():
+        keyframes.catch_up(0)  # the map is final: the frames between and before initial keyframes are posed on it
+        for frame, reference in tracker.pose_initial_gaps() + tracker.pose_before_initialisations():
             atlas.record(frame.index, frame.timestamp, reference, frame.T_cw)
     records, poses, map_frames = atlas.trajectory()
     if not records:

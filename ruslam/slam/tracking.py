@@ -17,6 +17,7 @@ The Tracker holds no threads: it hands keyframes to `keyframes.insert_keyframe(k
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,8 @@ class TrackingConfig:
     init_min_matches: int = 100
     init_window: float = 100.0  # px, monocular initialisation search window
     init_max_frames: int = 40  # restart initialisation from a newer frame after this many (a 20 Hz start: 2 s)
+    max_frames_before_init: int = 300  # untracked frames kept to be posed backwards from a new map's first keyframe
+    # at the end of the run (`pose_before_initialisations`); ~1 MB each with a learned extractor's descriptors
     init_min_parallax_deg: float = 1.0
     init_sigma_float: float = 1.5  # px, H-vs-F scoring of float keypoints (at 1.0 the degenerate F of a flat floor
     # won in Jerlov 3C on DEV hard and started the map 23-48 deg off)
@@ -105,6 +108,8 @@ class Tracker:
         self.init_pending: list[Frame] = []  # frames after init_frame that did not initialise with it
         self.initial_frame: KeyFrame | None = None  # set when monocular initialisation also poses an older frame
         self.initial_gaps: list[tuple[Frame, KeyFrame, KeyFrame]] = []  # see `pose_initial_gaps`
+        self.untracked: deque[Frame] = deque(maxlen=cfg.max_frames_before_init)  # since the last tracked frame
+        self.before_initialisations: list[tuple[list[Frame], KeyFrame]] = []  # see `pose_before_initialisations`
 
     @property
     def map(self) -> Map:
@@ -123,9 +128,16 @@ class Tracker:
                     ok = True
                 else:
                     ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
-                    if ok:
-                        self.state, self.lost_map = "ok", None
-                    return ok
+                    if not ok:
+                        self.untracked.append(frame)
+                        return False
+                    self.state, self.lost_map = "ok", None
+                    first = self.map.keyframes[0]  # the older initial keyframe: frames before it have no pose yet
+                    before = [f for f in self.untracked if f.index < first.index]
+                    if before:
+                        self.before_initialisations.append((before, first))
+                    self.untracked.clear()
+                    return True
             elif self.state == "ok":
                 ok = self._track_frame(frame)
             else:
@@ -140,8 +152,10 @@ class Tracker:
             bridged = not ok and self._bridge(frame)
             if not ok and not bridged:
                 self._lost(frame)
+                self.untracked.append(frame)
                 return False
             self.state, self.lost_count = "ok", 0
+            self.untracked.clear()
             if self.last is not None and self.last.T_cw is not None:
                 self.velocity = frame.T_cw @ inverse_pose(self.last.T_cw)
                 dt = frame.timestamp - self.last.timestamp
@@ -391,6 +405,34 @@ class Tracker:
             f.T_cw = interpolate_pose(kf1.pose(), kf2.pose(), (f.index - kf1.index) / (kf2.index - kf1.index))
             if reference is not None and self._optimize(f) >= self.cfg.min_inliers:
                 out.append((f, reference))
+        return out
+
+    def pose_before_initialisations(self) -> list[tuple[Frame, KeyFrame]]:
+        """Poses, on the final map, for the untracked frames before each map's first keyframe (a start the
+        initialisation could not use: the camera still, turning, or on a textureless view), tracked backwards from
+        that keyframe as forwards but without new keyframes; each run stops at its first frame that fails.
+        (frame, reference keyframe)."""
+        out = []
+        active = self.atlas.active
+        for frames, first in self.before_initialisations:
+            if first.is_bad:
+                continue
+            self.atlas.active = first.map.resolved()  # the run is over: tracking's local map is taken from there
+            self.reference = first
+            self.last = Frame(first.index, first.timestamp, first.keypoints, first.descriptors, first.K,
+                              first.image_size, T_cw=first.pose().copy(), points=self.store.resolve(first.points))
+            self.last_ref, self.velocity = (first, np.eye(4), first.current_scale()), None
+            for f in reversed(frames):
+                f.clear_points()
+                if not (self._track_frame(f) and self._track_local_map(f)):
+                    break
+                self._drop_outliers(f)
+                out.append((f, self.reference))
+                self.velocity = f.T_cw @ inverse_pose(self.last.T_cw)
+                self.last = f
+                self.last_ref = (self.reference, f.T_cw @ inverse_pose(self.reference.T_cw),
+                                 self.reference.current_scale())
+        self.atlas.active = active
         return out
 
     def _reset(self) -> None:
