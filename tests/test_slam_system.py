@@ -328,7 +328,7 @@ def test_initial_gap_frames_follow_a_later_rescale_of_the_map(monkeypatch):
 def test_frames_before_a_late_initialisation_are_tracked_backwards():
     """The camera stands still for the first 45 frames: no parallax, so the initialisation's reference is renewed
     after `init_max_frames` (40) and the map starts at frame 41 or later; the frames before it get their poses by
-    tracking backwards from the map's first keyframe at the end of the run (before, 41 frames had none)."""
+    tracking backwards from the map's first keyframe at the end of the run."""
     seq = FakeSequence(100, laps=0.5, landmarks=8000)
     seq.poses[:45] = seq.poses[45]
     result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))

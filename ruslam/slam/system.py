@@ -199,7 +199,7 @@ def run(sequence, extractor, cfg=None) -> SLAMTrajectory:
                 atlas.record(i, frame.timestamp, tracker.reference, frame.T_cw)
             timings[i] = time.perf_counter() - start
         keyframes.catch_up(0)  # the map is final: the frames between and before initial keyframes are posed on it
-        for frame, reference in tracker.pose_initial_gaps() + tracker.pose_before_initialisations():
+        for frame, reference in tracker.pose_untracked():
             atlas.record(frame.index, frame.timestamp, reference, frame.T_cw)
     records, poses, map_frames = atlas.trajectory()
     if not records:

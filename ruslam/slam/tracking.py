@@ -28,7 +28,6 @@ from ruslam.slam.geometry import (
     CHI2_2DOF,
     epipolar_mask,
     fundamental_from_poses,
-    interpolate_pose,
     solve_pnp_ransac,
     step_min_parallax_deg,
     two_view_initialization,
@@ -58,8 +57,8 @@ class TrackingConfig:
     init_min_matches: int = 100
     init_window: float = 100.0  # px, monocular initialisation search window
     init_max_frames: int = 40  # restart initialisation from a newer frame after this many (a 20 Hz start: 2 s)
-    max_frames_before_init: int = 300  # untracked frames kept to be posed backwards from a new map's first keyframe
-    # at the end of the run (`pose_before_initialisations`); ~1 MB each with a learned extractor's descriptors
+    max_untracked: int = 300  # untracked frames kept for posing around a later initialisation at the end of the
+    # run (`pose_untracked`): ~1 MB each with a learned extractor's descriptors
     init_min_parallax_deg: float = 1.0
     init_sigma_float: float = 1.5  # px, H-vs-F scoring of float keypoints (at 1.0 the degenerate F of a flat floor
     # won in Jerlov 3C on DEV hard and started the map 23-48 deg off)
@@ -105,11 +104,10 @@ class Tracker:
         self.lost_map: Map | None = None  # the map tracking was lost in, while a new one initialises
         self.reference: KeyFrame | None = None
         self.last_kf_index = -10**9
-        self.init_pending: list[Frame] = []  # frames after init_frame that did not initialise with it
         self.initial_frame: KeyFrame | None = None  # set when monocular initialisation also poses an older frame
-        self.initial_gaps: list[tuple[Frame, KeyFrame, KeyFrame]] = []  # see `pose_initial_gaps`
-        self.untracked: deque[Frame] = deque(maxlen=cfg.max_frames_before_init)  # since the last tracked frame
-        self.before_initialisations: list[tuple[list[Frame], KeyFrame]] = []  # see `pose_before_initialisations`
+        self.untracked: deque[Frame] = deque(maxlen=cfg.max_untracked)  # since the last tracked frame
+        # per initialisation: its keyframes (one for stereo) and the untracked frames before and between them
+        self.initialisations: list[tuple[list[KeyFrame], list[Frame], list[Frame]]] = []
 
     @property
     def map(self) -> Map:
@@ -132,10 +130,10 @@ class Tracker:
                         self.untracked.append(frame)
                         return False
                     self.state, self.lost_map = "ok", None
-                    first = self.map.keyframes[0]  # the older initial keyframe: frames before it have no pose yet
-                    before = [f for f in self.untracked if f.index < first.index]
-                    if before:
-                        self.before_initialisations.append((before, first))
+                    initial = self.map.keyframes[:1 if self.rig is not None else 2]
+                    self.initialisations.append((
+                        initial, [f for f in self.untracked if f.index < initial[0].index],
+                        [f for f in self.untracked if initial[0].index < f.index < initial[-1].index]))
                     self.untracked.clear()
                     return True
             elif self.state == "ok":
@@ -292,7 +290,7 @@ class Tracker:
         self.lost_map = self.map
         self.atlas.new_map()
         self.bridge_from = None
-        self.state, self.lost_count, self.init_frame, self.init_pending = "init", 0, None, []
+        self.state, self.lost_count, self.init_frame = "init", 0, None
         self.last_ref = self.reference = None
         if self.rig is None and len(frame) >= self.cfg.init_min_matches:
             frame.clear_points()
@@ -307,7 +305,7 @@ class Tracker:
             return False
         log.info("Frame %d: back in map %d; the new map is dropped.", frame.index, self.lost_map.id)
         self.atlas.activate(self.lost_map)
-        self.state, self.lost_map, self.init_frame, self.init_pending = "ok", None, None, []
+        self.state, self.lost_map, self.init_frame = "ok", None, None
         return True
 
     # --- initialisation ----------------------------------------------------------------------------------------
@@ -340,14 +338,11 @@ class Tracker:
             # the reference is kept while it still overlaps (parallax grows), replaced once it no longer does
             if len(ip) < c.init_min_matches // 2:
                 self._new_init_reference(frame)
-            else:
-                self.init_pending.append(frame)
             return False
         out = two_view_initialization(ref.keypoints[ip], frame.keypoints[ik], frame.K, self.seed + frame.index,
                                       c.init_min_parallax_deg, c.init_min_matches // 2,
                                       sigma=self.sigma if self.binary else c.init_sigma_float)
         if out is None:
-            self.init_pending.append(frame)
             return False
         T2, X, good, model = out
         ref.T_cw, frame.T_cw = np.eye(4), T2
@@ -371,68 +366,47 @@ class Tracker:
                  len(self.map.points))
         self._start(frame, kf2, [kf1, kf2])
         self.initial_frame = kf1
-        self._match_pending(kf1, kf2)
         return True
 
     def _new_init_reference(self, frame: Frame) -> None:
         self.init_frame = frame if len(frame) >= self.cfg.init_min_matches else None
-        self.init_pending = []
 
-    def _match_pending(self, kf1: KeyFrame, kf2: KeyFrame) -> None:
-        """The frames between the two initial keyframes, matched to the new map in windows around the pose
-        interpolated between the two keyframes; kept for `pose_initial_gaps` when the pose optimisation finds
-        `min_inliers`."""
-        points = self.map.sorted_points()
-        for f in self.init_pending:
-            f.T_cw = interpolate_pose(kf1.T_cw, kf2.T_cw, (f.index - kf1.index) / (kf2.index - kf1.index))
-            f.clear_points()
-            if self._search_points(f, points, self.cfg.window_radius) >= 20 and \
-                    self._optimize(f) >= self.cfg.min_inliers:
-                self._drop_outliers(f)
-                self.initial_gaps.append((f, kf1, kf2))
-        self.init_pending = []
+    def pose_untracked(self) -> list[tuple[Frame, KeyFrame]]:
+        """Poses, on the final map, for the untracked frames around each initialisation, tracked as forwards but
+        without new keyframes: the frames between two monocular initial keyframes from the first (those left, back
+        from the second), the frames before the first backwards from it (a start the initialisation could not use:
+        the camera still, turning, or on a blank view). (frame, reference keyframe) pairs.
 
-    def pose_initial_gaps(self) -> list[tuple[Frame, KeyFrame]]:
-        """Poses, on the final map, for the frames between the two keyframes of each monocular initialisation
-        (ORB-SLAM leaves them out; a trajectory should not start with a gap): (frame, reference keyframe).
-
-        Posed at the end, not when matched: the local BAs after an initialisation change the map's scale (2.5x
-        at TEST `pitch60`), and a pose recorded then against the fixed first keyframe put the frame 0.35 m off."""
-        out = []
-        for f, kf1, kf2 in self.initial_gaps:
-            reference = next((k for k in (kf2, kf1) if not k.is_bad), None)  # a live one: records are relative
-            f.points = self.store.resolve(f.points)
-            f.T_cw = interpolate_pose(kf1.pose(), kf2.pose(), (f.index - kf1.index) / (kf2.index - kf1.index))
-            if reference is not None and self._optimize(f) >= self.cfg.min_inliers:
-                out.append((f, reference))
-        return out
-
-    def pose_before_initialisations(self) -> list[tuple[Frame, KeyFrame]]:
-        """Poses, on the final map, for the untracked frames before each map's first keyframe (a start the
-        initialisation could not use: the camera still, turning, or on a textureless view), tracked backwards from
-        that keyframe as forwards but without new keyframes; each run stops at its first frame that fails.
-        (frame, reference keyframe)."""
+        At the end, not at the initialisation: the local BAs after it change the map's scale (2.5x at TEST
+        `pitch60`), and a pose recorded then against the fixed first keyframe put the frame 0.35 m off."""
         out = []
         active = self.atlas.active
-        for frames, first in self.before_initialisations:
-            if first.is_bad:
-                continue
-            self.atlas.active = first.map.resolved()  # the run is over: tracking's local map is taken from there
-            self.reference = first
-            self.last = Frame(first.index, first.timestamp, first.keypoints, first.descriptors, first.K,
-                              first.image_size, T_cw=first.pose().copy(), points=self.store.resolve(first.points))
-            self.last_ref, self.velocity = (first, np.eye(4), first.current_scale()), None
-            for f in reversed(frames):
-                f.clear_points()
-                if not (self._track_frame(f) and self._track_local_map(f)):
-                    break
-                self._drop_outliers(f)
-                out.append((f, self.reference))
-                self.velocity = f.T_cw @ inverse_pose(self.last.T_cw)
-                self.last = f
-                self.last_ref = (self.reference, f.T_cw @ inverse_pose(self.reference.T_cw),
-                                 self.reference.current_scale())
+        for initial, before, between in self.initialisations:
+            posed = self._track_from(initial[0], between)
+            out += posed + self._track_from(initial[-1], between[len(posed):][::-1])
+            out += self._track_from(initial[0], before[::-1])
         self.atlas.active = active
+        return out
+
+    def _track_from(self, kf: KeyFrame, frames: list[Frame]) -> list[tuple[Frame, KeyFrame]]:
+        """`frames` tracked in turn from keyframe `kf` on the final map, until one fails."""
+        out = []
+        if kf.is_bad or not frames:
+            return out
+        self.atlas.active = kf.map.resolved()  # the run is over: the local map is taken from kf's map
+        self.reference = kf
+        self.last = Frame(kf.index, kf.timestamp, kf.keypoints, kf.descriptors, kf.K, kf.image_size,
+                          T_cw=kf.pose().copy(), points=self.store.resolve(kf.points))
+        self.last_ref, self.velocity = (kf, np.eye(4), kf.current_scale()), None
+        for f in frames:
+            f.clear_points()
+            if not (self._track_frame(f) and self._track_local_map(f)):
+                break
+            self._drop_outliers(f)
+            out.append((f, self.reference))
+            self.velocity = f.T_cw @ inverse_pose(self.last.T_cw)
+            self.last = f
+            self.last_ref = (self.reference, f.T_cw @ inverse_pose(self.reference.T_cw), self.reference.current_scale())
         return out
 
     def _reset(self) -> None:
@@ -441,7 +415,7 @@ class Tracker:
         self.map.keyframes.clear()
         self.map.points.clear()
         self.map.covisibility.clear()
-        self.init_frame, self.init_pending = None, []
+        self.init_frame = None
 
     def _start(self, frame: Frame, kf: KeyFrame, kfs: list[KeyFrame]) -> None:
         self.reference = kf
