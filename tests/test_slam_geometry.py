@@ -5,6 +5,7 @@ import pytest
 
 from ruslam.models.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
 from ruslam.slam.geometry import (
+    _best_motion,
     epipolar_mask,
     fundamental_from_poses,
     pose_matrix,
@@ -105,6 +106,33 @@ def test_two_view_initialization_picks_the_real_motion_over_a_flat_seafloor(nois
     t_true = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
     assert np.degrees(np.arccos(T_est[:3, 3] @ t_true / np.linalg.norm(T_est[:3, 3]))) < 5
     assert np.abs(T_est[:3, :3] - T2[:3, :3]).max() < 0.02
+
+
+def _motion_result(rotation_deg, t, points, parallax=5.0):
+    """A triangulated motion hypothesis as `_best_motion` takes it: (good points, T2, X, good mask, parallax)."""
+    T2 = se3_exp(np.r_[0.0, np.radians(rotation_deg), 0.0, t])
+    T2[:3, 3] /= np.linalg.norm(T2[:3, 3])
+    return points, T2, np.ones((200, 3)), np.arange(200) < points, parallax
+
+
+_DESK_E = _motion_result(4.9, [-0.1, 0.33, 0.94], 180)  # ORB on a desk: E's motion, 93 deg from H's (right) one
+_PLANE_TRUE, _PLANE_SPURIOUS = _motion_result(0.3, [0.0, 0.5, -0.86], 165), _motion_result(11.4, [0.0, -0.9, -0.4], 166)
+
+
+@pytest.mark.parametrize(("ours", "rival", "expected"), [
+    ([_DESK_E], _motion_result(3.1, [-0.5, -0.9, 0.2], 205), None),  # another translation, not clearly farther: wait
+    ([_DESK_E], _motion_result(3.1, [-0.2, 0.3, 0.9], 150), 0),  # the same translation: the same motion
+    ([_DESK_E], _motion_result(12.0, [-0.4, -0.9, 0.2], 170), 0),  # another translation, clearly farther
+    ([_DESK_E], _motion_result(0.5, [-0.4, -0.9, 0.2], 150), None),  # clearly nearer: the other model only refuses
+    ([_DESK_E], _motion_result(3.1, [-0.5, -0.9, 0.2], 205, parallax=0.1), 0),  # too little parallax to be taken
+    # a plane's two solutions, and E holding the true one: the true one is taken, as without E
+    ([_PLANE_SPURIOUS, _PLANE_TRUE], _motion_result(0.2, [0.0, 0.51, -0.86], 166), 1),
+])
+def test_the_other_models_motion_refuses_an_ambiguous_first_pair(ours, rival, expected):
+    """A near-planar view with little parallax lets E and H triangulate as many points along different
+    translations: neither is taken unless ours has the clearly smaller rotation."""
+    out = _best_motion(ours, 1.0, 50, rivals=[rival])
+    assert (out is None) if expected is None else (out is not None and out[0] is ours[expected][1])
 
 
 def _matches(T2, seed, inliers, outliers, noise_px, depth):

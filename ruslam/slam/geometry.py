@@ -15,6 +15,8 @@ from ruslam.slam.map import inverse_pose, transform
 
 CHI2_2DOF = 5.991  # 95% quantile of chi^2 with 2 degrees of freedom (reprojection error, sigma = 1 px)
 CHI2_1DOF = 3.841
+CLOSE = 0.75  # two motions triangulating more than this share of the best's points are both plausible
+SAME_DEG = 30.0  # translations closer than this are one motion (a plane's two solutions are ~90 deg apart)
 
 
 def pose_matrix(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
@@ -82,12 +84,10 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
     return np.sum(np.where(e2 < CHI2_1DOF, CHI2_2DOF - e2, 0) + np.where(e1 < CHI2_1DOF, CHI2_2DOF - e1, 0))
 
 
-def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_px=2.0, rotation_ratio=0.5,
-                 prior_R=None, step=False):
-    """Pick the (R, t) that triangulates the most good points; when two hypotheses are close, the one nearer the
-    rotation prior (`prior_R`, default none: identity), refused unless clearly nearer for a map's first points.
-    The parallax tested is the 50th smallest for a map's first points, the median for a `step` (forward motion
-    leaves the points near the focus of expansion without any)."""
+def _triangulated(candidates, K, x1, x2, max_error_px, step):
+    """(good points, T2, X, good mask, parallax) per candidate motion (R, t) with camera 1 at the origin. The
+    parallax is the 50th smallest for a map's first points, the median for a `step` (forward motion leaves the
+    points near the focus of expansion without any)."""
     T1 = np.eye(4)
     results = []
     for R, t in candidates:
@@ -98,12 +98,24 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
         cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
         parallax = np.rad2deg(np.arccos(np.clip(np.sort(cos[good])[::-1], -1, 1)))
         rank = len(parallax) // 2 if step else min(49, len(parallax) - 1)
-        par = parallax[rank] if len(parallax) else 0.0
-        results.append((int(good.sum()), T2, X, good, par))
-    results.sort(key=lambda r: -r[0])
+        results.append((int(good.sum()), T2, X, good, parallax[rank] if len(parallax) else 0.0))
+    return results
+
+
+def _best_motion(results, min_parallax_deg, min_points, rotation_ratio=0.5, prior_R=None, step=False, rivals=()):
+    """Of `_triangulated` results, the motion that triangulates the most good points; when two hypotheses are close,
+    the one nearer the rotation prior (`prior_R`, default none: identity), refused unless clearly nearer for a map's
+    first points. `rivals`: the other model's results, which can only refuse a map's first points: a near-planar view
+    with little parallax lets E and H triangulate as many points along different translations (ORB on the desk: E's
+    180 points, 93 deg from H's 205, which were right)."""
+    results = sorted(results, key=lambda r: -r[0])
     if results[0][0] < min_points:
         return None
-    close = [r for r in results if r[0] > 0.75 * results[0][0]]
+    close = [r for r in results if r[0] > CLOSE * results[0][0]]
+    # a rival counts when it could be taken itself (enough parallax); one along the translation of one of ours is
+    # the same motion (H and E both hold it)
+    close += [r for r in rivals if r[0] > CLOSE * results[0][0] and r[4] >= min_parallax_deg and
+              all(_angle_deg(r[1][:3, 3], c[1][:3, 3]) > SAME_DEG for c in close)]
     if len(close) > 1:
         # A plane (a seafloor seen from above) has two exact solutions, the spurious one rotating the camera by
         # about the parallax angle (Faugeras-Lustman): between video frames the one closer to the expected rotation
@@ -114,12 +126,17 @@ def _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, max_error_
             return _rotation_deg(pose_matrix(r[1][:3, :3] @ prior.T, np.zeros(3)))
 
         close.sort(key=off_prior)
-        if not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1]):
+        unclear = not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1])
+        if unclear or any(close[0] is r for r in rivals):
             return None
     n_best, T2, X, good, par = close[0]
     if n_best < min_points or par < min_parallax_deg:
         return None
     return T2, X, good
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12), -1, 1))))
 
 
 def _rotation_deg(T: np.ndarray) -> float:
@@ -142,16 +159,18 @@ def _two_view_model(x1, x2, K, seed, method, iterations, min_parallax_deg, min_p
     s_e = _fundamental_score(K_inv.T @ E @ K_inv, x1, x2, sigma) if E is not None else 0.0
     if s_h + s_e <= 0:
         return None, None
-    if s_h / (s_h + s_e) > homography_ratio:
-        model = "homography"
+    motions = {"homography": [], "essential": []}
+    if H is not None:
         _, Rs, ts, _ = cv2.decomposeHomographyMat(H, K)
-        candidates = list(zip(Rs, ts, strict=True))
-    else:
-        model = "essential"
+        motions["homography"] = list(zip(Rs, ts, strict=True))
+    if E is not None:
         R1, R2, t = cv2.decomposeEssentialMat(E)
-        candidates = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
-    return _best_motion(candidates, K, x1, x2, min_parallax_deg, min_points, 2.0 * sigma, prior_R=prior_R,
-                        step=step), model
+        motions["essential"] = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
+    model, rival = ("homography", "essential") if s_h / (s_h + s_e) > homography_ratio else \
+        ("essential", "homography")
+    rivals = [] if step else _triangulated(motions[rival], K, x1, x2, 2.0 * sigma, step)  # a step keeps its prior
+    return _best_motion(_triangulated(motions[model], K, x1, x2, 2.0 * sigma, step), min_parallax_deg, min_points,
+                        prior_R=prior_R, step=step, rivals=rivals), model
 
 
 def two_view_initialization(

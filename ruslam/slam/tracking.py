@@ -334,10 +334,8 @@ class Tracker:
                 jp, jk = match(ref, np.arange(len(ref)), frame)
                 if len(jp) > len(ip):
                     ip, ik = jp, jk
-        if len(ip) < c.init_min_matches:
-            # the reference is kept while it still overlaps (parallax grows), replaced once it no longer does
-            if len(ip) < c.init_min_matches // 2:
-                self._new_init_reference(frame)
+        if len(ip) < c.init_min_matches:  # too little overlap left: this frame is the next reference (ORB-SLAM)
+            self._new_init_reference(frame)
             return False
         out = two_view_initialization(ref.keypoints[ip], frame.keypoints[ik], frame.K, self.seed + frame.index,
                                       c.init_min_parallax_deg, c.init_min_matches // 2,
