@@ -111,7 +111,7 @@ def test_orb_on_the_desk_from_a_near_planar_first_pair(shared_data):
     seq = _sequence(shared_data, "vamr_desk_handheld", slice(100, 380))
     result, ape_share = _run(seq, "orb")
     assert result.num_maps == 1 and result.tracked_ratio >= 0.98
-    assert ape_share <= 0.01  # measured 0.25 %
+    assert ape_share <= 0.01  # measured 0.24 %
 
 
 @pytest.mark.parametrize("name", ["orb", "uwnet_xfeat"])

@@ -168,7 +168,7 @@ def _two_view_model(x1, x2, K, seed, method, iterations, min_parallax_deg, min_p
         motions["essential"] = [(R1, t), (R1, -t), (R2, t), (R2, -t)]
     model, rival = ("homography", "essential") if s_h / (s_h + s_e) > homography_ratio else \
         ("essential", "homography")
-    rivals = [] if step else _triangulated(motions[rival], K, x1, x2, 2.0 * sigma, step)  # a step keeps its prior
+    rivals = [] if step else _triangulated(motions[rival], K, x1, x2, 2.0 * sigma, step)  # a step: its prior decides
     return _best_motion(_triangulated(motions[model], K, x1, x2, 2.0 * sigma, step), min_parallax_deg, min_points,
                         prior_R=prior_R, step=step, rivals=rivals), model
 
