@@ -96,6 +96,17 @@ def test_orb_initialises_on_the_pool_run_played_backwards_from_its_13_s_gap(shar
     assert ape_share <= 0.03  # measured 2.08 %
 
 
+def test_orb_bridges_the_pool_runs_turn_right_after_initialising_in_it(shared_data):
+    """Frames 79 -> 0: the first pair lies in the turn (56 points) and the next frame shares 4 of them. With no step
+    tracked yet, the initial pair's speed scales the bridges: before, they had no scale, and three maps were started
+    and lost within the turn (86 % of the frames in the reported map)."""
+    seq = _played_backwards(_sequence(shared_data, "subvo_pool_first110", slice(0, 80)))
+    result, ape_share = _run(seq, "orb")
+    assert (2, 1) in result.bridges
+    assert result.num_maps == 1 and result.tracked_ratio >= 0.95
+    assert ape_share <= 0.03  # measured 2.43 %
+
+
 def test_orb_on_the_desk_while_its_board_lies_still(shared_data):
     """Frames 0-379: from frame 380 a hand moves the checkerboard whose pose fits are the ground truth."""
     seq = _sequence(shared_data, "vamr_desk_handheld", slice(0, 380))

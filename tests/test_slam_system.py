@@ -218,6 +218,32 @@ def test_a_loss_that_two_views_share_only_a_few_points_is_bridged_when_confirmed
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
 
 
+def test_a_loss_right_after_initialisation_is_bridged_at_the_initial_pairs_speed():
+    """Frame 2 keeps none of the keypoints the first keyframe sees (as when a turn follows the first pair): it shares
+    no map point, so a bridge cannot take the map's depths, and no step has been tracked yet. The initial pair's
+    baseline over its time gives the bridge its scale: one map, every frame posed (before: frame 2 lost)."""
+    from ruslam.slam.geometry import project
+    from ruslam.slam.map import inverse_pose
+
+    seq = FakeSequence(40, laps=0.5, landmarks=30000)
+    extractor = FakeExtractor(seq)
+    uv, z = project(seq.cameras[0].K, inverse_pose(seq.poses[0]), seq.landmarks)
+    first_view = (z > 0.1) & (uv[:, 0] > -20) & (uv[:, 1] > -20) & (uv[:, 0] < 660) & (uv[:, 1] < 500)
+    extract = extractor.extract
+
+    def extract_without_the_first_view(image):
+        out = extract(image)
+        if int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) != 2:
+            return out
+        keep = ~first_view[np.argmax(out["descriptors"] @ extractor.desc.T, axis=1)]  # each keypoint's landmark
+        return {**out, **{k: out[k][keep] for k in ("keypoints", "scores", "descriptors")}}
+
+    extractor.extract = extract_without_the_first_view
+    result = run(seq, extractor, SLAMConfig(progress=False))
+    assert result.num_maps == 1 and len(result) == len(seq) and (2, 1) in result.bridges
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
 def test_a_keyframe_moved_by_inline_mapping_gives_its_frame_the_new_pose(monkeypatch):
     """A loop correction or a merge moves the whole map while the keyframe that triggered it is inserted: the frame
     that became that keyframe must take the moved pose. Here the map is shifted by 0.5 m at the 8th keyframe; a

@@ -363,6 +363,8 @@ class Tracker:
         log.info("Initialised (%s) from frames %d and %d with %d points.", model, ref.index, frame.index,
                  len(self.map.points))
         self._start(frame, kf2, [kf1, kf2])
+        dt = frame.timestamp - ref.timestamp
+        self.speed = float(np.linalg.norm(kf2.T_cw[:3, 3])) / dt if dt > 0 else 0.0  # a bridge's scale at once
         self.initial_frame = kf1
         return True
 
