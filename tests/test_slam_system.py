@@ -218,6 +218,31 @@ def test_a_loss_that_two_views_share_only_a_few_points_is_bridged_when_confirmed
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
 
 
+def test_a_loss_that_outlasts_lost_frames_is_still_bridged_back_into_its_map():
+    """Frames 20-23 show nothing the map knows (random keypoints), so a new map is started after `lost_frames`;
+    frames 24-31 are dropped, and frame 32 shares too few points with frame 19 to relocalise. Bridged from the lost
+    map's last tracked frame while the new map initialises, the run stays one map (before: two)."""
+    seq = FakeSequence(60, laps=0.5, landmarks=8000)
+    keep = [*range(24), *range(32, 46)]
+    seq.timestamps, seq.poses = seq.timestamps[keep], seq.poses[keep]
+    extractor = FakeExtractor(seq)
+    extract, rng = extractor.extract, np.random.default_rng(0)
+
+    def extract_garbage_in_20_to_23(image):
+        out = extract(image)
+        if not 20 <= int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) <= 23:
+            return out
+        d = rng.normal(size=out["descriptors"].shape).astype(np.float32)
+        return {**out, "keypoints": rng.uniform((0, 0), (639, 479), out["keypoints"].shape).astype(np.float32),
+                "descriptors": d / np.linalg.norm(d, axis=1, keepdims=True)}
+
+    extractor.extract = extract_garbage_in_20_to_23
+    result = run(seq, extractor, SLAMConfig(progress=False))
+    assert result.num_maps == 1 and (24, 19) in result.bridges
+    assert set(result.frame_indices) == set(range(len(seq))) - {20, 21, 22, 23}
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
 def test_a_loss_right_after_initialisation_is_bridged_at_the_initial_pairs_speed():
     """Frame 2 keeps none of the keypoints the first keyframe sees (as when a turn follows the first pair): it shares
     no map point, so a bridge cannot take the map's depths, and no step has been tracked yet. The initial pair's

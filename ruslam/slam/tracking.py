@@ -121,9 +121,12 @@ class Tracker:
     def track(self, frame: Frame) -> bool:
         """Estimate `frame.T_cw`; True when the frame is tracked against the (active) map."""
         with self.atlas.lock:
+            bridged = False
             if self.state == "init":
                 if self.lost_map is not None and self._relocalize_in_lost_map(frame):
                     ok = True
+                elif self.lost_map is not None and self._bridge_into_lost_map(frame):
+                    ok = bridged = True
                 else:
                     ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
                     if not ok:
@@ -140,14 +143,14 @@ class Tracker:
                 ok = self._track_frame(frame)
             else:
                 ok = self._relocalize(frame, self.map)
-            if ok:
+            if ok and not bridged:
                 ok = self._track_local_map(frame)
                 if not ok:
                     log.debug("Frame %d: local map tracking failed (%d inliers).", frame.index,
                               int(np.count_nonzero(frame.points >= 0) - frame.outliers.sum()))
             elif self.state == "ok":
                 log.debug("Frame %d: frame-to-frame tracking failed.", frame.index)
-            bridged = not ok and self._bridge(frame)
+            bridged = bridged or (not ok and self._bridge(frame))
             if not ok and not bridged:
                 self._lost(frame)
                 self.untracked.append(frame)
@@ -289,9 +292,8 @@ class Tracker:
                  self.lost_count)
         self.lost_map = self.map
         self.atlas.new_map()
-        self.bridge_from = None
         self.state, self.lost_count, self.init_frame = "init", 0, None
-        self.last_ref = self.reference = None
+        self.reference = None
         if self.rig is None and len(frame) >= self.cfg.init_min_matches:
             frame.clear_points()
             self.init_frame = frame  # the reference of the new map's initialisation
@@ -304,6 +306,19 @@ class Tracker:
         if not self._relocalize(frame, self.lost_map):
             return False
         log.info("Frame %d: back in map %d; the new map is dropped.", frame.index, self.lost_map.id)
+        self.atlas.activate(self.lost_map)
+        self.state, self.lost_map, self.init_frame = "ok", None, None
+        return True
+
+    def _bridge_into_lost_map(self, frame: Frame) -> bool:
+        """While a new map initialises: back to the lost map if the frame is bridged from its last tracked frame (the
+        loss outlasted `lost_frames`, e.g. frames with no usable view, and two views overlap again)."""
+        new, self.atlas.active = self.atlas.active, self.lost_map
+        if not self._bridge(frame):
+            self.atlas.active = new
+            return False
+        log.info("Frame %d: back in map %d by a bridge; the new map is dropped.", frame.index, self.lost_map.id)
+        self.atlas.active = new
         self.atlas.activate(self.lost_map)
         self.state, self.lost_map, self.init_frame = "ok", None, None
         return True
