@@ -319,7 +319,7 @@ class Tracker:
             return False
         log.info("Frame %d: back in map %d by a bridge; the new map is dropped.", frame.index, self.lost_map.id)
         self.atlas.active = new
-        self.atlas.activate(self.lost_map)
+        self.atlas.activate(self.lost_map)  # drops the new map, still empty
         self.state, self.lost_map, self.init_frame = "ok", None, None
         return True
 
