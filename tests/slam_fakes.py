@@ -79,6 +79,11 @@ class FakeSequence:
         return images
 
 
+def frame_number(image: np.ndarray) -> int:
+    """The frame number FakeSequence writes into the first row of its images."""
+    return int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0])
+
+
 class FakeExtractor:
     """Projections of the landmarks for the frame whose number is written in the image."""
 
@@ -98,7 +103,7 @@ class FakeExtractor:
         if image[0, 5] != 1:  # black frame: nothing to detect
             return {"keypoints": np.zeros((0, 2), np.float32), "scores": np.zeros(0, np.float32),
                     "descriptors": self.desc[:0], "global_descriptor": None}
-        i = int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0])
+        i = frame_number(image)
         cam = int(image[0, 4])
         T_cw = inverse_pose(self.seq.poses[i])
         if cam == 1:

@@ -5,7 +5,7 @@ import threading
 
 import numpy as np
 import pytest
-from slam_fakes import FakeExtractor, FakeSequence
+from slam_fakes import FakeExtractor, FakeSequence, frame_number
 
 from ruslam.data.readers import Trajectory, read_tum_trajectory
 from ruslam.eval.trajectory import evaluate_trajectory
@@ -53,7 +53,7 @@ class ThreadRecordingExtractor(FakeExtractor):
 
     def extract(self, image):
         self.threads.add(threading.current_thread().name)
-        if self.fail_at is not None and int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) == self.fail_at:
+        if self.fail_at is not None and frame_number(image) == self.fail_at:
             raise RuntimeError("extractor failed on purpose")
         return super().extract(image)
 
@@ -117,7 +117,7 @@ def test_binary_descriptors_that_change_beyond_the_strict_gate_are_found_in_proj
     class Changed(FakeExtractor):
         def extract(self, image):
             out = super().extract(image)
-            if image[0, 5] == 1 and int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) >= 15:
+            if image[0, 5] == 1 and frame_number(image) >= 15:
                 out["descriptors"] = out["descriptors"] ^ np.uint8(0xFF) * (np.arange(32) < 10)
             return out
 
@@ -230,7 +230,7 @@ def test_a_loss_that_outlasts_lost_frames_is_still_bridged_back_into_its_map():
 
     def extract_garbage_in_20_to_23(image):
         out = extract(image)
-        if not 20 <= int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) <= 23:
+        if not 20 <= frame_number(image) <= 23:
             return out
         d = rng.normal(size=out["descriptors"].shape).astype(np.float32)
         return {**out, "keypoints": rng.uniform((0, 0), (639, 479), out["keypoints"].shape).astype(np.float32),
@@ -258,7 +258,7 @@ def test_a_loss_right_after_initialisation_is_bridged_at_the_initial_pairs_speed
 
     def extract_without_the_first_view(image):
         out = extract(image)
-        if int(np.frombuffer(image[0, :4].tobytes(), np.uint32)[0]) != 2:
+        if frame_number(image) != 2:
             return out
         keep = ~first_view[np.argmax(out["descriptors"] @ extractor.desc.T, axis=1)]  # each keypoint's landmark
         return {**out, **{k: out[k][keep] for k in ("keypoints", "scores", "descriptors")}}
