@@ -123,10 +123,9 @@ class Tracker:
         with self.atlas.lock:
             bridged = False
             if self.state == "init":
-                if self.lost_map is not None and self._relocalize_in_lost_map(frame):
-                    ok = True
-                elif self.lost_map is not None and self._bridge_into_lost_map(frame):
-                    ok = bridged = True
+                back = self._back_in_lost_map(frame) if self.lost_map is not None else None
+                if back is not None:
+                    ok, bridged = True, back == "bridged"
                 else:
                     ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
                     if not ok:
@@ -298,30 +297,25 @@ class Tracker:
             frame.clear_points()
             self.init_frame = frame  # the reference of the new map's initialisation
 
-    def _relocalize_in_lost_map(self, frame: Frame) -> bool:
-        """While a new map initialises: back to the lost map if the frame relocalises there."""
-        if self.lost_map.merged_into is not None or not self.lost_map.keyframes:
+    def _back_in_lost_map(self, frame: Frame) -> str | None:
+        """While a new map initialises: back to the lost map if the frame relocalises there or, failing that, is bridged
+        from its last tracked frame (a loss that outlasted `lost_frames`, e.g. frames with no usable view, ending where
+        two views overlap again). "relocalised", "bridged", or None when neither."""
+        lost = self.lost_map
+        if lost.merged_into is not None or not lost.keyframes:
             self.lost_map = None
-            return False
-        if not self._relocalize(frame, self.lost_map):
-            return False
-        log.info("Frame %d: back in map %d; the new map is dropped.", frame.index, self.lost_map.id)
-        self.atlas.activate(self.lost_map)
-        self.state, self.lost_map, self.init_frame = "ok", None, None
-        return True
-
-    def _bridge_into_lost_map(self, frame: Frame) -> bool:
-        """While a new map initialises: back to the lost map if the frame is bridged from its last tracked frame (the
-        loss outlasted `lost_frames`, e.g. frames with no usable view, and two views overlap again)."""
-        new, self.atlas.active = self.atlas.active, self.lost_map
-        if not self._bridge(frame):
+            return None
+        how = "relocalised" if self._relocalize(frame, lost) else None
+        if how is None:
+            new, self.atlas.active = self.atlas.active, lost  # a bridge adds its keyframes to the active map
+            how = "bridged" if self._bridge(frame) else None
             self.atlas.active = new
-            return False
-        log.info("Frame %d: back in map %d by a bridge; the new map is dropped.", frame.index, self.lost_map.id)
-        self.atlas.active = new
-        self.atlas.activate(self.lost_map)  # drops the new map, still empty
+        if how is None:
+            return None
+        log.info("Frame %d: back in map %d (%s); the new map is dropped.", frame.index, lost.id, how)
+        self.atlas.activate(lost)  # drops the new map, still empty
         self.state, self.lost_map, self.init_frame = "ok", None, None
-        return True
+        return how
 
     # --- initialisation ----------------------------------------------------------------------------------------
     def _initialize_stereo(self, frame: Frame) -> bool:
