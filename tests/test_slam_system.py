@@ -1,6 +1,7 @@
 """The whole SLAM on exact synthetic sequences (tests/slam_fakes.py): accuracy, stereo scale, bad input, modes."""
 
 import logging
+import re
 import threading
 
 import numpy as np
@@ -215,6 +216,38 @@ def test_a_loss_that_two_views_share_only_a_few_points_is_bridged_when_confirmed
     seq.timestamps, seq.poses = seq.timestamps[keep], seq.poses[keep]
     result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
     assert result.num_maps == 1 and len(result) == len(seq) and (20, 19) in result.bridges
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
+@pytest.mark.parametrize(("misplaced", "scale"), [(False, "map"), (True, "speed")])
+def test_a_bridge_takes_the_maps_scale_only_where_its_shared_points_agree(monkeypatch, caplog, misplaced, scale):
+    """Frame 25 is not tracked (tracking and relocalisation made to fail) and is bridged from frame 24, whose map
+    points it shares: their depths scale the step. With three in five of them at a quarter of their depth (weak
+    points the map misplaced), their median would shrink the step 4x; their middle half then spans far more than
+    half that median, and the constant speed scales the step instead."""
+    import ruslam.slam.tracking as tracking
+
+    seq = arc(40)
+    tracker = tracking.Tracker
+    track_frame, relocalize, bridge = tracker._track_frame, tracker._relocalize, tracker._bridge
+
+    def bridge_with_misplaced_points(self, frame):
+        if frame.index == 25 and misplaced:
+            ids = self.store.resolve(self.bridge_from.points)
+            ids = ids[ids >= 0]
+            ids = ids[np.arange(len(ids)) % 5 < 3]
+            T = self.bridge_from.T_cw
+            self.store.position[ids] = tracking.transform(tracking.inverse_pose(T),
+                                                          0.25 * tracking.transform(T, self.store.position[ids]))
+        return bridge(self, frame)
+
+    monkeypatch.setattr(tracker, "_track_frame", lambda self, f: f.index != 25 and track_frame(self, f))
+    monkeypatch.setattr(tracker, "_relocalize", lambda self, f, m: f.index != 25 and relocalize(self, f, m))
+    monkeypatch.setattr(tracker, "_bridge", bridge_with_misplaced_points)
+    with caplog.at_level(logging.INFO, logger="ruslam.slam.tracking"):
+        result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert result.num_maps == 1 and len(result) == len(seq) and (25, 24) in result.bridges
+    assert re.search(rf"Frame 25: tracking lost; bridged from frame 24 .*, {scale} scale\)", caplog.text)
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
 
 

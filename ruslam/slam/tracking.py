@@ -175,8 +175,9 @@ class Tracker:
     def _bridge(self, frame: Frame) -> bool:
         """Tracking and relocalisation failed: pose `frame` from the last tracked frame by two-view geometry (E or H,
         chosen as in initialisation) and keep both as keyframes of the same map, with points triangulated between
-        them. Scale: the depths of the map points seen in both views, else the last speed. A weak link:
-        local BA, later loops and merges refine it. False (a lost frame) when two-view geometry fails too."""
+        them. Scale: the depths of the map points seen in both views where they agree (`_map_scale`), else the last
+        speed. A weak link: local BA, later loops and merges refine it. False (a lost frame) when two-view geometry
+        fails too."""
         prev = self.bridge_from
         if not self.cfg.bridge or self.rig is not None or prev is None or self.last_ref is None:
             return False
@@ -205,10 +206,8 @@ class Tracker:
         ia, ib, X = ia[good], ib[good], X[good]
         shared = prev.points[ia]
         has = (shared >= 0) & ~self.store.bad[np.maximum(shared, 0)]
-        if np.count_nonzero(has) >= 10:  # the map's depths of the points seen in both views fix the scale
-            z_map = transform(prev.T_cw, self.store.position[shared[has]])[:, 2]
-            s = float(np.median(z_map / X[has, 2]))
-        else:
+        s = map_scale = self._map_scale(prev, shared[has], X[has])
+        if map_scale is None:
             step = self.speed * (frame.timestamp - prev.timestamp)  # constant speed across dropped frames
             s = step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
         if not (np.isfinite(s) and s > 0):
@@ -239,8 +238,19 @@ class Tracker:
         frame.points = self.store.resolve(kf.points.copy())
         self.bridges.append((frame.index, prev.index))
         log.info("Frame %d: tracking lost; bridged from frame %d by two-view geometry (%s, %d points, %s scale).",
-                 frame.index, prev.index, model, len(ia), "map" if np.count_nonzero(has) >= 10 else "speed")
+                 frame.index, prev.index, model, len(ia), "speed" if map_scale is None else "map")
         return True
+
+    def _map_scale(self, prev: Frame, points: np.ndarray, X: np.ndarray) -> float | None:
+        """A bridge's scale from the map's depths of `points` (seen in both views; X: their two-view positions): the
+        median ratio of map to two-view depth, when 10 points give it and the middle half of their ratios spans at
+        most half the median. Points that disagree (the map's depths of a few weak points) set the step 7x off on the
+        TUM circle; None: the last speed scales the step."""
+        if len(points) < 10:
+            return None
+        ratios = transform(prev.T_cw, self.store.position[points])[:, 2] / X[:, 2]
+        q1, median, q3 = np.percentile(ratios, [25, 50, 75])
+        return float(median) if q3 - q1 <= 0.5 * median else None
 
     def _bridge_motion(self, prev: Frame, frame: Frame, ia, ib, min_points: int, confirm: bool, prior):
         """The two-view motion prev -> frame from matches ia <-> ib that triangulates `min_points` points, or None;
