@@ -87,9 +87,11 @@ def frame_number(image: np.ndarray) -> int:
 class FakeExtractor:
     """Projections of the landmarks for the frame whose number is written in the image."""
 
-    def __init__(self, sequence: FakeSequence, binary=False, noise_px=0.5, dim=32, seed=1, words=4096):
+    def __init__(self, sequence: FakeSequence, binary=False, noise_px=0.5, dim=32, seed=1, words=4096, levels=1):
         rng = np.random.default_rng(seed)
         self.seq, self.binary, self.noise = sequence, binary, noise_px
+        # a pyramid detector's: each landmark detected on one of `levels` levels (scale 1.2^level, noise with it)
+        self.scales = 1.2 ** rng.integers(0, levels, len(sequence.landmarks))
         n = len(sequence.landmarks)
         if binary:
             self.desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
@@ -111,7 +113,7 @@ class FakeExtractor:
         K = self.seq.cameras[0].K
         uv, z = project(K, T_cw, self.seq.landmarks)
         rng = np.random.default_rng(1000 * i + cam)
-        uv = uv + rng.normal(0, self.noise, uv.shape)
+        uv = uv + rng.normal(0, self.noise, uv.shape) * self.scales[:, None]
         vis = np.nonzero((z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < 639) & (uv[:, 1] < 479))[0]
         desc = self.desc[vis].copy()
         if self.binary:
@@ -122,5 +124,6 @@ class FakeExtractor:
             desc /= np.linalg.norm(desc, axis=1, keepdims=True)
         g = np.bincount(self.words[vis], minlength=self.num_words).astype(np.float32)
         g /= max(np.linalg.norm(g), 1e-12)
-        return {"keypoints": uv[vis].astype(np.float32), "scores": np.ones(len(vis), np.float32),
-                "descriptors": desc, "global_descriptor": g}
+        out = {"keypoints": uv[vis].astype(np.float32), "scores": np.ones(len(vis), np.float32),
+               "descriptors": desc, "global_descriptor": g}
+        return out if np.all(self.scales == 1) else {**out, "scales": self.scales[vis].astype(np.float32)}

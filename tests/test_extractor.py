@@ -58,6 +58,10 @@ def test_classical_extractors_follow_the_contract(name):
     assert 0 < n <= 100
     assert out["keypoints"].shape == (n, 2) and out["scores"].shape == (n,) and len(out["descriptors"]) == n
     assert (out["keypoints"] >= 0).all() and (out["keypoints"][:, 0] < 160).all()
+    if name == "orb":  # the pyramid level each keypoint was found on, as its scale
+        levels = np.log(out["scales"]) / np.log(1.2)
+        assert out["scales"].shape == (n,) and np.allclose(levels, np.round(levels), atol=1e-4)
+        assert len(set(np.round(levels))) > 1 and levels.min() > -0.5 and levels.max() < 7.5
 
 
 def test_bad_inputs_are_named():

@@ -77,13 +77,16 @@ def _played_backwards(seq):
                                image_paths=seq.image_paths[::-1], groundtruth=backwards)
 
 
-def test_orb_tracks_the_pool_run_played_backwards(shared_data):
-    """Motion nobody tuned on. The motion model's wider (30 px) windows are searched around the prediction: searched
-    around the pose a failed 15 px optimisation left, 8 frames in a row were bridged in the turn (6.5 % of the path)."""
-    seq = _played_backwards(_sequence(shared_data, "subvo_pool_first110"))
+@pytest.mark.parametrize("last", [109, 108, 107, 106])
+def test_orb_tracks_the_pool_run_played_backwards(shared_data, last):
+    """Motion nobody tuned on, from four first frames. The motion model's wider (30 px) windows are searched around
+    the prediction (searched around the pose a failed 15 px optimisation left, 8 frames in a row were bridged in the
+    turn: 6.5 % of the path). A bridge across frames lost for 7 s took 7 steps at the last speed where the crawler
+    had stopped, and the map's scale followed (4.55-7.87 % from three of these first frames)."""
+    seq = _played_backwards(_sequence(shared_data, "subvo_pool_first110", slice(0, last + 1)))
     result, ape_share = _run(seq, "orb")
     assert result.num_maps == 1 and result.tracked_ratio >= 0.95
-    assert ape_share <= 0.03  # measured 1.92 %
+    assert ape_share <= 0.03  # measured 1.84 / 1.84 / 2.06 / 2.09 %
 
 
 def test_orb_initialises_on_the_pool_run_played_backwards_from_its_13_s_gap(shared_data):

@@ -147,6 +147,30 @@ def test_the_motion_models_ratio_test_sees_look_alikes_two_window_radii_away(mon
     assert (15.0, 30.0) in calls and (5.0, None) in calls
 
 
+def test_the_motion_model_widens_each_window_by_the_pyramid_scale_of_the_points_last_keypoint(monkeypatch):
+    """ORB-SLAM's windows: a point the last frame saw on pyramid level k (a keypoint only 1.2^k as precise) is
+    searched within 15 px x 1.2^k, its rivals within twice that; without scales every window is 15 px."""
+    import ruslam.slam.tracking as tracking
+
+    calls = []
+
+    def spy(uv, point_desc, keypoints, kp_desc, radius, *args, rival_radius=None, **kwargs):
+        if rival_radius is not None:  # the motion model's searches
+            calls.append((np.asarray(radius, float), np.asarray(rival_radius, float)))
+        return match_in_windows(uv, point_desc, keypoints, kp_desc, radius, *args, rival_radius=rival_radius,
+                                **kwargs)
+
+    monkeypatch.setattr(tracking, "match_in_windows", spy)
+    seq = arc(20)
+    result = run(seq, FakeExtractor(seq, binary=True, levels=8), SLAMConfig(progress=False))
+    assert result.num_maps == 1 and result.tracked_ratio > 0.95
+    assert ape_ratio(seq, result, "sim3")[0] < 0.02
+    narrow = [(r, q) for r, q in calls if r.min() == 15.0]
+    assert narrow and all(np.allclose(q, 2 * r) for r, q in narrow)
+    levels = np.log(np.concatenate([r for r, _ in narrow]) / 15.0) / np.log(1.2)
+    assert np.allclose(levels, np.round(levels)) and set(np.round(levels)) == set(range(8))
+
+
 def test_black_and_corrupt_frames_are_skipped_and_tracking_resumes(caplog):
     seq = arc(30, black=[12], corrupt=[13])
     with caplog.at_level(logging.WARNING):
@@ -249,6 +273,42 @@ def test_a_bridge_takes_the_maps_scale_only_where_its_shared_points_agree(monkey
     assert result.num_maps == 1 and len(result) == len(seq) and (25, 24) in result.bridges
     assert re.search(rf"Frame 25: tracking lost; bridged from frame 24 .*, {scale} scale\)", caplog.text)
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
+@pytest.mark.parametrize("camera", ["stopped", "kept moving"])
+def test_a_bridge_across_dropped_frames_takes_the_step_that_fits_the_scenes_depth(monkeypatch, camera):
+    """Frame 21 follows a gap and is bridged by the last speed (tracking, relocalisation and the map's scale made to
+    fail). A camera that stopped while frames were lost (7 s, one step: the pool crawler) or kept moving (7 frames
+    dropped, eight steps: a rendered lap) gives the same two views; between those two steps the bridge takes the
+    one that puts its new points at the depth of the scene the last frame tracked."""
+    import ruslam.slam.tracking as tracking
+
+    seq = arc(40)
+    if camera == "stopped":
+        seq.timestamps[21:] += 7.0
+    else:
+        keep = [*range(21), *range(28, 40)]
+        seq.timestamps, seq.poses = seq.timestamps[keep], seq.poses[keep]
+    tracker = tracking.Tracker
+    track_frame, relocalize, speed_scale = tracker._track_frame, tracker._relocalize, tracker._speed_scale
+    steps = []  # (the bridge's step, the last tracked step), map units
+
+    def spy(self, prev, T21, X, dt):
+        s = speed_scale(self, prev, T21, X, dt)
+        steps.append((s * np.linalg.norm(T21[:3, 3]), self.speed * self.step_dt))
+        return s
+
+    monkeypatch.setattr(tracker, "_track_frame", lambda self, f: f.index != 21 and track_frame(self, f))
+    monkeypatch.setattr(tracker, "_relocalize", lambda self, f, m: f.index != 21 and relocalize(self, f, m))
+    monkeypatch.setattr(tracker, "_map_scale", lambda self, prev, points, X: None)
+    monkeypatch.setattr(tracker, "_speed_scale", spy)
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert result.num_maps == 1 and len(result) == len(seq) and (21, 20) in result.bridges
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+    centre = seq.poses[:, :3, 3]
+    true_ratio = np.linalg.norm(centre[21] - centre[20]) / np.linalg.norm(centre[20] - centre[19])  # 1 or 8
+    (bridged, last), = steps
+    assert 0.75 < bridged / last / true_ratio < 1.33
 
 
 def test_a_loss_that_outlasts_lost_frames_is_still_bridged_back_into_its_map():

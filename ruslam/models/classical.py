@@ -49,7 +49,8 @@ class ORB(Extractor):
             kps, desc = self._orb.compute(gray, kps) if kps else ((), None)
         xy, scores = _keypoint_arrays(kps)
         desc = np.zeros((0, 32), np.uint8) if desc is None else desc
-        return {"keypoints": xy, "scores": scores, "descriptors": desc}
+        scales = np.array([c["scale_factor"] ** kp.octave for kp in kps], np.float32)
+        return {"keypoints": xy, "scores": scores, "descriptors": desc, "scales": scales}
 
 
 class SIFT(Extractor):

@@ -6,7 +6,9 @@ keyword overrides, and `extract(image) -> dict` with stable keys:
 - ``keypoints``  float32 [N, 2], (x, y) in pixels of the *input* image, pixel centres at integer coordinates;
 - ``scores``     float32 [N];
 - ``descriptors`` [N, D], float32 L2-normalized, or uint8 packed bits for binary descriptors (ORB);
-- ``global_descriptor`` float32 [G] L2-normalized, only for extractors that have a global head.
+- ``global_descriptor`` float32 [G] L2-normalized, only for extractors that have a global head;
+- ``scales``     float32 [N], the pyramid scale each keypoint was detected at (1 = full size), only for
+  pyramid detectors (ORB): the SLAM widens a keypoint's search window by it.
 
 Dense descriptor maps at stride ``s`` are sampled at keypoints with the convention
 ``(kp + 0.5) / s - 0.5`` and ``align_corners=False`` (`sample_descriptors`), used everywhere in the project.

@@ -60,6 +60,7 @@ class Frame:
     K: np.ndarray  # 3x3 ideal pinhole of camera 0
     image_size: tuple[int, int]  # (width, height)
     global_descriptor: np.ndarray | None = None
+    scales: np.ndarray | None = None  # [N] pyramid scale of each keypoint's detection, None = all full size
     right: np.ndarray | None = None  # [N, 2] undistorted right pixels, NaN where no stereo match
     depth: np.ndarray | None = None  # [N] stereo depth in camera 0, NaN where none
     T_cw: np.ndarray | None = None
@@ -103,7 +104,7 @@ class KeyFrame(Frame):
         super().__init__(
             index=frame.index, timestamp=frame.timestamp, keypoints=frame.keypoints,
             descriptors=frame.descriptors, K=frame.K, image_size=frame.image_size,
-            global_descriptor=frame.global_descriptor, right=frame.right, depth=frame.depth,
+            global_descriptor=frame.global_descriptor, scales=frame.scales, right=frame.right, depth=frame.depth,
             T_cw=frame.T_cw.copy(), points=frame.points.copy(),
         )
         self.id = id

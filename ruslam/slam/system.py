@@ -126,7 +126,8 @@ def make_frame(index, timestamp, images, extractor, sequence, stereo: bool, cfg:
     g = out.get("global_descriptor")
     frame = Frame(index=index, timestamp=float(timestamp), keypoints=kps.astype(np.float64),
                   descriptors=out["descriptors"], K=cam0.K, image_size=(cam0.width, cam0.height),
-                  global_descriptor=None if g is None else np.asarray(g, np.float32))
+                  global_descriptor=None if g is None else np.asarray(g, np.float32),
+                  scales=None if out.get("scales") is None else np.asarray(out["scales"], np.float64))
     if stereo:
         cam1 = sequence.cameras[1]
         out_r = extractor.extract(images[1])

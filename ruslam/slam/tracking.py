@@ -99,6 +99,7 @@ class Tracker:
         self.velocity: np.ndarray | None = None  # in the scale of last_ref
         self.lost_count = 0
         self.speed = 0.0  # map units per second over the last step (a bridge's scale when no point is shared)
+        self.step_dt = 0.0  # seconds the last step took
         self.bridges: list[tuple[int, int]] = []  # (frame index, bridged-from frame index): the weak links
         self.bridge_from: Frame | None = None  # the last tracked frame of the active map
         self.lost_map: Map | None = None  # the map tracking was lost in, while a new one initialises
@@ -159,7 +160,8 @@ class Tracker:
             if self.last is not None and self.last.T_cw is not None:
                 self.velocity = frame.T_cw @ inverse_pose(self.last.T_cw)
                 dt = frame.timestamp - self.last.timestamp
-                self.speed = float(np.linalg.norm(self.velocity[:3, 3])) / dt if dt > 0 else self.speed
+                if dt > 0:
+                    self.speed, self.step_dt = float(np.linalg.norm(self.velocity[:3, 3])) / dt, dt
             self._drop_outliers(frame)
             if not bridged and self._need_keyframe(frame):
                 self._insert_keyframe(frame)
@@ -208,8 +210,7 @@ class Tracker:
         has = (shared >= 0) & ~self.store.bad[np.maximum(shared, 0)]
         s = map_scale = self._map_scale(prev, shared[has], X[has])
         if map_scale is None:
-            step = self.speed * (frame.timestamp - prev.timestamp)  # constant speed across dropped frames
-            s = step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
+            s = self._speed_scale(prev, T21, X, frame.timestamp - prev.timestamp)
         if not (np.isfinite(s) and s > 0):
             return False
         kf_prev = ref if ref.index == prev.index and not ref.is_bad else None
@@ -240,6 +241,20 @@ class Tracker:
         log.info("Frame %d: tracking lost; bridged from frame %d by two-view geometry (%s, %d points, %s scale).",
                  frame.index, prev.index, model, len(ia), "speed" if map_scale is None else "map")
         return True
+
+    def _speed_scale(self, prev: Frame, T21: np.ndarray, X: np.ndarray, dt: float) -> float:
+        """A bridge's scale from the last speed. Across dropped frames the camera either kept that speed (a rendered
+        lap's 8 dropped frames) or made only about its last step (the pool crawler stopped while frames were lost):
+        between those two steps, the one that puts the new points (X, prev's frame) at the median depth of the map
+        points prev tracked."""
+        lo, hi = sorted((self.speed * dt, self.speed * self.step_dt))
+        tracked = prev.points[prev.points >= 0]
+        tracked = tracked[~self.store.bad[tracked]]
+        step = hi
+        if lo < hi and len(tracked):
+            depth = np.median(transform(prev.T_cw, self.store.position[tracked])[:, 2])
+            step = float(np.clip(depth / np.median(X[:, 2]) * np.linalg.norm(T21[:3, 3]), lo, hi))
+        return step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
 
     def _map_scale(self, prev: Frame, points: np.ndarray, X: np.ndarray) -> float | None:
         """A bridge's scale from the map's depths of `points` (seen in both views; X: their two-view positions): the
@@ -384,6 +399,7 @@ class Tracker:
         self._start(frame, kf2, [kf1, kf2])
         dt = frame.timestamp - ref.timestamp
         self.speed = float(np.linalg.norm(kf2.T_cw[:3, 3])) / dt if dt > 0 else 0.0  # a bridge's scale at once
+        self.step_dt = dt
         self.initial_frame = kf1
         return True
 
@@ -414,7 +430,7 @@ class Tracker:
             return out
         self.atlas.active = kf.map.resolved()  # the run is over: the local map is taken from kf's map
         self.reference = kf
-        self.last = Frame(kf.index, kf.timestamp, kf.keypoints, kf.descriptors, kf.K, kf.image_size,
+        self.last = Frame(kf.index, kf.timestamp, kf.keypoints, kf.descriptors, kf.K, kf.image_size, scales=kf.scales,
                           T_cw=kf.pose().copy(), points=self.store.resolve(kf.points))
         self.last_ref, self.velocity = (kf, np.eye(4), kf.current_scale()), None
         for f in frames:
@@ -453,13 +469,17 @@ class Tracker:
         if self.velocity is not None:
             predicted = scale_translation(self.velocity, ratio) @ self.last.T_cw
             pts = self.store.resolve(self.last.points)
-            pts = pts[pts >= 0]
-            for radius in (self.cfg.window_radius, 2 * self.cfg.window_radius):
+            seen = pts >= 0
+            pts = pts[seen]
+            # ORB-SLAM's windows: wider for a point the last frame saw on a coarser pyramid level
+            level = 1.0 if self.last.scales is None else self.last.scales[seen]
+            for base in (self.cfg.window_radius, 2 * self.cfg.window_radius):
                 frame.T_cw = predicted.copy()  # the wider windows around the prediction, not the failed optimum
                 frame.clear_points()
+                radius = base * level
                 rivals = self.cfg.window_rivals * radius
                 if self._search_points(frame, pts, radius, rival_radius=rivals) >= 20 and self._optimize(frame) >= 10:
-                    log.debug("Frame %d: motion model, %d px windows.", frame.index, radius)
+                    log.debug("Frame %d: motion model, %d px windows.", frame.index, base)
                     return True
         for match in self._matchers():  # every nearest-neighbour fallback first, then the pair matcher's
             knn = match == self._match_knn
@@ -563,9 +583,9 @@ class Tracker:
         np.add.at(self.store.found, frame.points[(frame.points >= 0) & ~frame.outliers], 1)
         return inliers >= self.cfg.min_inliers
 
-    def _search_points(self, frame: Frame, points: np.ndarray, radius: float, count_visible=False,
-                       rival_radius: float | None = None) -> int:
-        """Project map points (ids) with frame.T_cw and match them in windows; returns the number of matched points."""
+    def _search_points(self, frame: Frame, points: np.ndarray, radius, count_visible=False, rival_radius=None) -> int:
+        """Project map points (ids) with frame.T_cw and match them in windows of `radius` px (scalar or per point);
+        returns the number of matched points."""
         if len(points):
             X = self.store.position[points]
             uv, z = frame.project(X)
@@ -578,6 +598,8 @@ class Tracker:
             vis = np.nonzero(visible)[0]
             if count_visible:
                 np.add.at(self.store.visible, points[vis], 1)
+            if np.ndim(radius):
+                radius, rival_radius = radius[vis], rival_radius if np.ndim(rival_radius) == 0 else rival_radius[vis]
             ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
                                       radius, self.binary, self.window_distance, self.cfg.window_ratio,
                                       available=frame.points < 0, distinct_px=self.noise_radius,
