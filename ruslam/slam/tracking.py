@@ -49,7 +49,7 @@ class TrackingConfig:
     sigma_binary: float = 1.0  # keypoint noise (px): Huber width and chi2 outlier test scale with it
     sigma_float: float = 1.0  # learned extractors (1.5, for XFeat's heavier error tail, let wrong matches bias poses)
     window_ratio: float = 0.8  # ratio test inside a search window (0.9 let XFeat's look-alike neighbours through)
-    window_radius: float = 15.0  # px, constant-velocity search (doubled on failure)
+    window_radius: float = 15.0  # px, constant-velocity search (doubled on failure), times the keypoint's pyramid scale
     window_rivals: float = 2.0  # its ratio test against look-alikes up to this many radii away: in repetitive
     # texture (tiles, a checkerboard) the window may hold only a copy one period off the point (BENCHMARKS.md)
     local_map_radius: float = 5.0  # px, local-map search
