@@ -472,11 +472,11 @@ class Tracker:
             seen = pts >= 0
             pts = pts[seen]
             # ORB-SLAM's windows: wider for a point the last frame saw on a coarser pyramid level
-            level = 1.0 if self.last.scales is None else self.last.scales[seen]
+            pyramid = 1.0 if self.last.scales is None else self.last.scales[seen]
             for base in (self.cfg.window_radius, 2 * self.cfg.window_radius):
                 frame.T_cw = predicted.copy()  # the wider windows around the prediction, not the failed optimum
                 frame.clear_points()
-                radius = base * level
+                radius = base * pyramid
                 rivals = self.cfg.window_rivals * radius
                 if self._search_points(frame, pts, radius, rival_radius=rivals) >= 20 and self._optimize(frame) >= 10:
                     log.debug("Frame %d: motion model, %d px windows.", frame.index, base)
