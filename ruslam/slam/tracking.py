@@ -248,13 +248,14 @@ class Tracker:
         between those two steps, the one that puts the new points (X, prev's frame) at the median depth of the map
         points prev tracked."""
         lo, hi = sorted((self.speed * dt, self.speed * self.step_dt))
+        t = float(np.linalg.norm(T21[:3, 3]))
         tracked = prev.points[prev.points >= 0]
         tracked = tracked[~self.store.bad[tracked]]
         step = hi
         if lo < hi and len(tracked):
             depth = np.median(transform(prev.T_cw, self.store.position[tracked])[:, 2])
-            step = float(np.clip(depth / np.median(X[:, 2]) * np.linalg.norm(T21[:3, 3]), lo, hi))
-        return step / max(float(np.linalg.norm(T21[:3, 3])), 1e-12)
+            step = float(np.clip(depth / np.median(X[:, 2]) * t, lo, hi))
+        return step / max(t, 1e-12)
 
     def _map_scale(self, prev: Frame, points: np.ndarray, X: np.ndarray) -> float | None:
         """A bridge's scale from the map's depths of `points` (seen in both views; X: their two-view positions): the
