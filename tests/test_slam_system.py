@@ -231,6 +231,54 @@ def test_a_sudden_turn_is_tracked_from_the_last_frame(caplog):
     assert ape_ratio(seq, result, "sim3")[0] < 0.01
 
 
+def test_a_pose_the_local_map_refuses_hands_the_frame_to_the_next_method(monkeypatch, caplog):
+    """The local map refuses frame 20's motion-model pose (as it refuses one locked onto look-alikes): the frame goes on
+    to the last frame's points by descriptor, whose pose the local map confirms; it is tracked, not bridged."""
+    from ruslam.slam.tracking import Tracker
+
+    track_local_map, refused = Tracker._track_local_map, []
+
+    def refuse_once(self, frame):
+        if frame.index == 20 and not refused:
+            refused.append(frame.index)
+            return False
+        return track_local_map(self, frame)
+
+    monkeypatch.setattr(Tracker, "_track_local_map", refuse_once)
+    seq = arc()
+    with caplog.at_level(logging.DEBUG, logger="ruslam.slam.tracking"):
+        result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False))
+    assert refused and "Frame 20: last frame by descriptor." in caplog.text
+    assert result.tracked_ratio == 1.0 and not result.bridges
+    assert ape_ratio(seq, result, "sim3")[0] < 0.01
+
+
+def test_where_the_local_map_refuses_every_nearest_neighbour_pose_the_frame_is_bridged_without_the_pair_matcher(
+        monkeypatch):
+    """The local map refuses every pose of frame 20: each nearest-neighbour method posed it, so the pair matcher is
+    not asked (a third matcher would not mend the map); the bridge builds new geometry, and the run stays whole."""
+    from ruslam.models.feature_matching import match_knn_ratio
+    from ruslam.slam.tracking import Tracker
+
+    track_local_map, refused, calls = Tracker._track_local_map, [], []
+
+    def refuse_frame_20(self, frame):
+        if frame.index == 20:
+            refused.append(frame.index)
+            return False
+        return track_local_map(self, frame)
+
+    def pair_matcher(kp0, d0, size0, kp1, d1, size1):
+        calls.append(len(kp0))
+        return match_knn_ratio(d0, d1, False, 0.5)
+
+    monkeypatch.setattr(Tracker, "_track_local_map", refuse_frame_20)
+    seq = arc()
+    result = run(seq, FakeExtractor(seq), SLAMConfig(progress=False, pair_matcher=pair_matcher))
+    assert len(refused) >= 2 and calls == []
+    assert (20, 19) in result.bridges and result.tracked_ratio == 1.0 and result.num_maps == 1
+
+
 def test_a_loss_that_two_views_share_only_a_few_points_is_bridged_when_confirmed():
     """Frames 20-31 dropped: frames 19 and 32 share 22 landmarks, too few for tracking, relocalisation or a full
     bridge (30 points); their motion, confirmed by distinctive matches along its epipolar lines, keeps one map

@@ -1,14 +1,16 @@
 """Tracking (paper 3.3): initialisation, motion model, fallbacks, local-map tracking, keyframes, recovery.
 
-A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when
-that fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the
-reference keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor
-without any window (PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); with a learned pair
-matcher (LightGlue), the last frame and the reference keyframe once more through it. When all fail, the frame is
-bridged to the last tracked frame by two-view geometry in the same map (monocular); when that fails too the tracker
-is lost: it relocalises against the active map (the latest keyframes and, with a global descriptor, retrieval) and
-tries the bridge again for `lost_frames` frames, then starts a new map in the Atlas (ORB-SLAM3); while that map
-initialises it keeps trying to relocalise in the map it lost. Loop closing merges the maps when they meet again.
+A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when that
+fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the reference
+keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window
+(PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); each pose these give is a hypothesis that
+the local map must confirm, and one it refuses passes the frame to the next method. Where none of them posed the
+frame, a learned pair matcher (LightGlue) matches the last frame, then the reference keyframe, once more. When all
+fail, the frame is bridged to the last tracked frame by two-view geometry in the same map (monocular); when that
+fails too the tracker is lost: it relocalises against the active map (the latest keyframes and, with a global
+descriptor, retrieval) and tries the bridge again for `lost_frames` frames, then starts a new map in the Atlas
+(ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the
+maps when they meet again.
 
 The Tracker holds no threads: it hands keyframes to `keyframes.insert_keyframe(kf)` and asks `keyframes.idle()`
 (`keyframe_pipeline.py`: inline or queued to a worker thread).
@@ -126,7 +128,8 @@ class Tracker:
             if self.state == "init":
                 back = self._back_in_lost_map(frame) if self.lost_map is not None else None
                 if back is not None:
-                    ok, bridged = True, back == "bridged"
+                    bridged = back == "bridged"
+                    ok = bridged or self._track_local_map(frame)
                 else:
                     ok = self._initialize_stereo(frame) if self.rig is not None else self._initialize_mono(frame)
                     if not ok:
@@ -141,15 +144,10 @@ class Tracker:
                     return True
             elif self.state == "ok":
                 ok = self._track_frame(frame)
-            else:
-                ok = self._relocalize(frame, self.map)
-            if ok and not bridged:
+            elif self._relocalize(frame, self.map):
                 ok = self._track_local_map(frame)
-                if not ok:
-                    log.debug("Frame %d: local map tracking failed (%d inliers).", frame.index,
-                              int(np.count_nonzero(frame.points >= 0) - frame.outliers.sum()))
-            elif self.state == "ok":
-                log.debug("Frame %d: frame-to-frame tracking failed.", frame.index)
+            else:
+                ok = False
             bridged = bridged or (not ok and self._bridge(frame))
             if not ok and not bridged:
                 self._lost(frame)
@@ -436,7 +434,7 @@ class Tracker:
         self.last_ref, self.velocity = (kf, np.eye(4), kf.current_scale()), None
         for f in frames:
             f.clear_points()
-            if not (self._track_frame(f) and self._track_local_map(f)):
+            if not self._track_frame(f):
                 break
             self._drop_outliers(f)
             out.append((f, self.reference))
@@ -464,6 +462,37 @@ class Tracker:
 
     # --- frame-to-frame ----------------------------------------------------------------------------------------
     def _track_frame(self, frame: Frame) -> bool:
+        """The first nearest-neighbour pose hypothesis (`_pose_hypotheses`) that the local map confirms: ORB-SLAM
+        tracks the local map after its motion model or reference keyframe and is lost when that fails; here a refused
+        pose (a look-alike match, a stale reference) hands the frame to the next method. Only where none of them
+        posed the frame, the pair matcher's first pose (last frame, then reference keyframe) is tried: where nearest
+        neighbours match but the map refuses their poses, a bridge builds new geometry instead."""
+        posed = False
+        for how in self._pose_hypotheses(frame):
+            posed = True
+            if self._confirmed(frame, how):
+                return True
+        if posed or self.pair_matcher is None:
+            return False
+        for name, ref, use in (("last frame", self.last, self.cfg.last_frame_fallback),
+                               ("reference keyframe", self.reference, True)):
+            if use and self._track_by_descriptor(frame, ref, self._match_pair):
+                return self._confirmed(frame, f"{name} by descriptor (pair matcher)")
+        return False
+
+    def _confirmed(self, frame: Frame, how: str) -> bool:
+        """The local map's verdict on the pose `how` gave the frame (logged)."""
+        if self._track_local_map(frame):
+            log.debug("Frame %d: %s.", frame.index, how)
+            return True
+        log.debug("Frame %d: %s, refused by the local map (%d inliers).", frame.index, how,
+                  int(np.count_nonzero(frame.points >= 0) - frame.outliers.sum()))
+        return False
+
+    def _pose_hypotheses(self, frame: Frame):
+        """Poses of `frame` by nearest-neighbour matching, cheapest first: the motion model's windows; the last
+        frame's, the reference keyframe's and the local map's points by descriptor. Each is yielded (its name) with
+        frame.T_cw and frame.points set."""
         ref, T_lr, scale = self.last_ref
         ratio = ref.current_scale() / scale  # a loop or a merge may have rescaled the map since the last frame
         self.last.T_cw = scale_translation(T_lr, ratio) @ ref.pose()  # the reference may have moved too
@@ -478,23 +507,16 @@ class Tracker:
                 frame.T_cw = predicted.copy()  # the wider windows around the prediction, not the failed optimum
                 frame.clear_points()
                 radius = base * pyramid
-                rivals = self.cfg.window_rivals * radius
-                if self._search_points(frame, pts, radius, rival_radius=rivals) >= 20 and self._optimize(frame) >= 10:
-                    log.debug("Frame %d: motion model, %d px windows.", frame.index, base)
-                    return True
-        for match in self._matchers():  # every nearest-neighbour fallback first, then the pair matcher's
-            knn = match == self._match_knn
-            how = "" if knn else " (pair matcher)"
-            if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last, match):
-                log.debug("Frame %d: last frame by descriptor%s.", frame.index, how)
-                return True
-            if self._track_by_descriptor(frame, self.reference, match):
-                log.debug("Frame %d: reference keyframe by descriptor%s.", frame.index, how)
-                return True
-            if knn and self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
-                log.debug("Frame %d tracked by the local-map fallback.", frame.index)
-                return True
-        return False
+                self._search_points(frame, pts, radius, rival_radius=self.cfg.window_rivals * radius)
+                if np.count_nonzero(frame.points >= 0) >= 20 and self._optimize(frame) >= 10:
+                    yield f"motion model, {base:g} px windows"
+                    break
+        if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last, self._match_knn):
+            yield "last frame by descriptor"
+        if self._track_by_descriptor(frame, self.reference, self._match_knn):
+            yield "reference keyframe by descriptor"
+        if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
+            yield "local map by descriptor"
 
     def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
         """Last fallback: the local map's points matched by descriptor, no window, pose by PnP RANSAC."""
@@ -561,6 +583,8 @@ class Tracker:
 
     # --- local map ---------------------------------------------------------------------------------------------
     def _track_local_map(self, frame: Frame) -> bool:
+        """The local map's points searched around the frame's pose, which they refine; True at `min_inliers`. Only a
+        confirmed pose becomes the reference and counts for the points (visible in its view, found)."""
         counts: dict[KeyFrame, int] = {}
         observations = self.store.observations
         for j in self.store.alive(frame.points):
@@ -569,7 +593,6 @@ class Tracker:
         if not counts:
             return False
         local = sorted(counts, key=lambda k: -counts[k])[: self.cfg.local_keyframes]
-        self.reference = local[0]
         for kf in list(local):
             for n in self.map.neighbours(kf, 10):
                 if n not in counts and len(local) < 2 * self.cfg.local_keyframes:
@@ -577,36 +600,39 @@ class Tracker:
                     local.append(n)
         seen = self.store.seen_by(local)  # up to 40 keyframes' points
         candidates = seen[~np.isin(seen, frame.points)]
-        self._search_points(frame, candidates, self.cfg.local_map_radius, count_visible=True)
+        in_view = self._search_points(frame, candidates, self.cfg.local_map_radius)
         inliers = self._optimize(frame)
         log.debug("Frame %d: local map, %d inliers of %d matches.", frame.index, inliers,
                   np.count_nonzero(frame.points >= 0))
+        if inliers < self.cfg.min_inliers:
+            return False
+        self.reference = local[0]
+        np.add.at(self.store.visible, in_view, 1)
         np.add.at(self.store.found, frame.points[(frame.points >= 0) & ~frame.outliers], 1)
-        return inliers >= self.cfg.min_inliers
+        return True
 
-    def _search_points(self, frame: Frame, points: np.ndarray, radius, count_visible=False, rival_radius=None) -> int:
+    def _search_points(self, frame: Frame, points: np.ndarray, radius, rival_radius=None) -> np.ndarray:
         """Project map points (ids) with frame.T_cw and match them in windows of `radius` px (scalar or per point);
-        returns the number of matched points."""
-        if len(points):
-            X = self.store.position[points]
-            uv, z = frame.project(X)
-            centre = frame.center
-            rays = X - centre
-            dist = np.linalg.norm(rays, axis=1)
-            normals = self.store.normal[points]
-            cos = np.sum(rays * normals, 1) / np.maximum(dist, 1e-12)
-            visible = (z > 0) & frame.in_image(uv) & ((cos > 0.5) | (np.abs(normals).sum(1) == 0))
-            vis = np.nonzero(visible)[0]
-            if count_visible:
-                np.add.at(self.store.visible, points[vis], 1)
-            if np.ndim(radius):
-                radius, rival_radius = radius[vis], rival_radius if np.ndim(rival_radius) == 0 else rival_radius[vis]
-            ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
-                                      radius, self.binary, self.window_distance, self.cfg.window_ratio,
-                                      available=frame.points < 0, distinct_px=self.noise_radius,
-                                      rival_radius=rival_radius)
-            frame.points[ik] = points[vis[ip]]
-        return int(np.count_nonzero(frame.points >= 0))
+        returns the ids of those in view."""
+        if not len(points):
+            return points
+        X = self.store.position[points]
+        uv, z = frame.project(X)
+        centre = frame.center
+        rays = X - centre
+        dist = np.linalg.norm(rays, axis=1)
+        normals = self.store.normal[points]
+        cos = np.sum(rays * normals, 1) / np.maximum(dist, 1e-12)
+        visible = (z > 0) & frame.in_image(uv) & ((cos > 0.5) | (np.abs(normals).sum(1) == 0))
+        vis = np.nonzero(visible)[0]
+        if np.ndim(radius):
+            radius, rival_radius = radius[vis], rival_radius if np.ndim(rival_radius) == 0 else rival_radius[vis]
+        ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
+                                  radius, self.binary, self.window_distance, self.cfg.window_ratio,
+                                  available=frame.points < 0, distinct_px=self.noise_radius,
+                                  rival_radius=rival_radius)
+        frame.points[ik] = points[vis[ip]]
+        return points[vis]
 
     def _optimize(self, frame: Frame) -> int:
         """Motion-only pose optimisation over the frame's matches; returns the number of inliers."""
