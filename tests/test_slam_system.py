@@ -256,7 +256,7 @@ def test_a_pose_the_local_map_refuses_hands_the_frame_to_the_next_method(monkeyp
 def test_where_the_local_map_refuses_every_nearest_neighbour_pose_the_frame_is_bridged_without_the_pair_matcher(
         monkeypatch):
     """The local map refuses every pose of frame 20: each nearest-neighbour method posed it, so the pair matcher is
-    not asked (a third matcher would not mend the map); the bridge builds new geometry, and the run stays whole."""
+    not asked (another matcher would not mend the map); the bridge builds new geometry, and the run stays whole."""
     from ruslam.models.feature_matching import match_knn_ratio
     from ruslam.slam.tracking import Tracker
 
