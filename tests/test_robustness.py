@@ -98,3 +98,51 @@ def test_stereo_variant_has_the_baseline(tmp_path):
     left, right = seq.load(2)
     assert seq.stereo and np.allclose(seq.T_cam0_cam1[:3, 3], [0.2, 0, 0])
     assert left.shape == right.shape and not np.array_equal(left, right)
+
+
+def test_pool_scene_casts_floor_walls_and_open_water_at_their_true_ranges():
+    """A camera 0.3 m above the floor looking straight down sees the floor at its height; one looking level at a
+    wall sees it at the wall's distance, open water above the wall's top edge, the floor below."""
+    from ruslam.data.synthetic_sequence import downward_poses, pixel_rays
+    from ruslam.data.tiled_pool import DEPTH_M, make_pool, render_pool
+
+    pool = make_pool(np.array([[-1.0, -0.5], [1.0, 0.5]]), tile_m=0.05, seed=0)
+    camera = SurveyConfig(width=64, height=48).camera()
+    rays = pixel_rays(camera)
+    at = np.array([[0.2, 0.1, 0.3]])
+    down = downward_poses(at, np.array([[1.0, 0, 0]]), 0.0, np.zeros(1))[0]
+    rgb, rng = render_pool(pool, rays, down)
+    np.testing.assert_allclose(rng * rays[..., 2], 0.3, rtol=1e-5)  # depth along the axis: the height
+    assert rgb.shape == (48, 64, 3) and rgb.std() > 0.05
+    level = downward_poses(at + [0, 0, DEPTH_M - 0.6], np.array([[1.0, 0, 0]]), 90.0, np.zeros(1))[0]
+    _, rng = render_pool(pool, rays, level)
+    assert rng[24, 32] * rays[24, 32, 2] == pytest.approx(pool.half_x - 0.2, rel=1e-5)  # the +x wall, level ahead
+    assert np.isinf(rng[0]).all() and np.isfinite(rng[-1]).all()  # above the wall's top / the floor near the wall
+
+
+def test_pool_tiles_repeat_at_their_size_in_the_image():
+    """Looking straight down from height h, grout lines repeat every f * tile / h pixels."""
+    from ruslam.data.synthetic_sequence import downward_poses, pixel_rays
+    from ruslam.data.tiled_pool import make_pool, render_pool
+
+    cfg = SurveyConfig(width=256, height=192)
+    camera = cfg.camera()
+    pose = downward_poses(np.array([[0.0, 0.0, 0.5]]), np.array([[1.0, 0, 0]]), 0.0, np.zeros(1))[0]
+    for tile in (0.04, 0.06):
+        rgb, _ = render_pool(make_pool(np.zeros((1, 2)), tile_m=tile, seed=1), pixel_rays(camera), pose)
+        profile = rgb.mean(axis=(0, 2)) - rgb.mean()  # grout columns are bright
+        spectrum = np.abs(np.fft.rfft(profile))
+        period = len(profile) / (2 + np.argmax(spectrum[2:]))  # the strongest frequency (the mean left out)
+        assert period == pytest.approx(camera.fx * tile / 0.5, rel=0.08)
+
+
+def test_pool_variant_renders_and_reads_back(tmp_path):
+    seq = robustness_sequence("pool", cache_dir=tmp_path, frames=3, scene="pool", altitude=0.3, pitch_deg=65,
+                              tile_m=0.04, **TINY)
+    image = seq.load(2)[0]
+    assert image.shape == (48, 64, 3) and image.std() > 5
+    assert SurveyConfig().key() != SurveyConfig(scene="pool").key() != SurveyConfig(scene="pool", tile_m=0.04).key()
+    with pytest.raises(ValueError, match="pitch_deg must be within 0-80"):
+        SurveyConfig(scene="pool", pitch_deg=85)
+    with pytest.raises(ValueError, match="scene must be"):
+        SurveyConfig(scene="reef")

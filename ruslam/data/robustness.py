@@ -20,6 +20,7 @@ import hashlib
 import json
 import os
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,7 @@ from ruslam.data.synthetic_sequence import (
     render,
     texture_pyramid,
 )
+from ruslam.data.tiled_pool import make_pool, render_pool
 
 VERSION = 1  # bump when rendering changes, so stale caches are regenerated
 MAX_INCIDENCE_DEG = 85.0  # rays nearer the horizon see open water (background light), not the floor
@@ -55,7 +57,7 @@ class SurveyConfig:
     straights: tuple[int, int] = (12, 6)  # frames along the long and the short sides of the rectangle
     laps: float = 1.2  # > 1: the end flies over the start again
     frames: int | None = None  # number of frames; None: laps x frames per lap
-    pitch_deg: float = 30.0  # forward tilt of the camera from straight down, 0-60
+    pitch_deg: float = 30.0  # forward tilt of the camera from straight down, 0-60 (pool: 0-80)
     fps: float = 10.0  # timestamps only (the motion per frame is step and turn_deg)
     # camera
     width: int = 320
@@ -64,6 +66,9 @@ class SurveyConfig:
     k1: float = 0.0  # radial lens distortion (k1 of radial-tangential, k2 = -k1 / 2: barrel for k1 < 0)
     stereo: bool = False
     baseline: float = 0.12  # metres, right camera along +x of the left one
+    # scene: "seafloor" (rocks and sand) or "pool" (a tiled floor and walls, ruslam.data.tiled_pool)
+    scene: str = "seafloor"
+    tile_m: float = 0.05  # pool: tile size in metres
     # seafloor
     contrast: float = 1.0  # albedo deviations from the mean colour x this (0.3 = washed-out sand)
     density: float = 1.0  # rocks and pebbles per unit area x this (0.2 = sparse)
@@ -75,7 +80,10 @@ class SurveyConfig:
     seed: int = 0
 
     def __post_init__(self):
-        checks = [(0 <= self.pitch_deg <= 60, "pitch_deg must be within 0-60"),
+        max_pitch = 80 if self.scene == "pool" else 60  # a seafloor ray-cast needs every ray pointing down
+        checks = [(self.scene in ("seafloor", "pool"), "scene must be 'seafloor' or 'pool'"),
+                  (0 <= self.pitch_deg <= max_pitch, f"pitch_deg must be within 0-{max_pitch}"),
+                  (self.tile_m > 0, "tile_m must be > 0"),
                   (self.altitude > 0 and self.step > 0, "altitude and step must be > 0"),
                   (0 < self.turn_deg <= 45, "turn_deg must be within (0, 45] degrees per frame"),
                   (min(self.straights) >= 0 and len(self.straights) == 2, "straights must be two frame counts >= 0"),
@@ -119,7 +127,8 @@ class SurveyConfig:
                       dist=[self.k1, -self.k1 / 2, 0.0, 0.0])
 
     def key(self) -> str:
-        knobs = {k: v for k, v in asdict(self).items() if not (k == "k1" and v == 0)}  # undistorted: keys as before
+        defaults = {"k1": 0.0, "scene": "seafloor", "tile_m": 0.05}  # later knobs at their default: keys as before
+        knobs = {k: v for k, v in asdict(self).items() if not (k in defaults and v == defaults[k])}
         text = json.dumps({**knobs, "version": VERSION}, sort_keys=True)
         return hashlib.sha1(text.encode()).hexdigest()[:10]
 
@@ -207,8 +216,13 @@ def render_survey(cfg: SurveyConfig, out: Path, progress: bool = False) -> Path:
         return out
     tmp = out.with_name(out.name + f".tmp{os.getpid()}_{np.random.default_rng().integers(1 << 30)}")
     poses = survey_poses(cfg)
-    floor = survey_seafloor(cfg, poses)
-    levels = texture_pyramid(floor.texture)
+    if cfg.scene == "pool":
+        pool = make_pool(poses[:, :2, 3], cfg.tile_m, cfg.seed)
+        view = partial(render_pool, pool)
+    else:
+        floor = survey_seafloor(cfg, poses)
+        view = partial(render, floor, texture_levels=texture_pyramid(floor.texture),
+                       max_incidence_deg=MAX_INCIDENCE_DEG)
     cam_dirs = _write_layout(tmp, cfg, poses, cfg.water or "air")
     rays = pixel_rays(cfg.camera())
     offsets = [np.eye(4)]
@@ -222,8 +236,7 @@ def render_survey(cfg: SurveyConfig, out: Path, progress: bool = False) -> Path:
 
         frames = tqdm(frames, desc=f"rendering {out.name}", unit="frame")
     for i in frames:
-        views = [render(floor, rays, poses[i] @ T, texture_levels=levels, max_incidence_deg=MAX_INCIDENCE_DEG)
-                 for T in offsets]
+        views = [view(rays, poses[i] @ T) for T in offsets]
         images = _apply_water(cfg, [v[0] for v in views], [v[1] for v in views], i)
         for cam_dir, image in zip(cam_dirs, images, strict=True):
             _imwrite(cam_dir / "data" / f"{stamps[i]}.png", image)
