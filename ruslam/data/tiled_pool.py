@@ -21,6 +21,7 @@ DEPTH_M = 1.6  # wall height: the real pool is 1.6 m deep
 MARGIN_M = 1.2  # floor between the path's extent and the walls
 TEXEL_M = 0.002  # texture resolution: below a pixel's footprint on the nearest floor the camera sees
 GROUT = 0.12  # grout line width as a fraction of the tile
+MOTTLE = 0.15  # the tiles' speckle: in-tile contrast as in the real pool footage (std / mean ~0.07)
 
 
 @dataclass
@@ -42,7 +43,8 @@ def _tiles(rng: np.random.Generator, width_m: float, height_m: float, tile_m: fl
     grout = (np.minimum(u % 1, 1 - u % 1) < GROUT / 2)[None, :] | (np.minimum(v % 1, 1 - v % 1) < GROUT / 2)[:, None]
     tone = rng.normal(0.0, 0.04, (int(v[-1]) + 1, int(u[-1]) + 1)).astype(np.float32)  # each tile its own shade
     albedo = 0.28 + tone[v.astype(int)[:, None], u.astype(int)[None, :]]
-    albedo += rng.normal(0.0, 0.03, (h, w)).astype(np.float32)  # the tiles' mottle
+    speck = rng.normal(0.0, 1.0, (int(h / period * 6) + 1, int(w / period * 6) + 1)).astype(np.float32)
+    albedo *= 1.0 + MOTTLE * cv2.resize(speck, (w, h), interpolation=cv2.INTER_CUBIC)  # blobs a sixth of a tile
     albedo = np.where(grout, 0.78, albedo)
     side = max(width_m, height_m)  # isotropic stains: one square of noise over the longer side, cropped
     stains = _fractal(rng, 256, octaves=4, base=4)[:max(2, int(256 * height_m / side)),
