@@ -4,7 +4,7 @@ footage (repetitive texture, a forward-looking camera that sees the walls when i
 The pool is a box ray-cast analytically: each pixel's ray meets the floor plane or one of the wall planes; a ray that
 leaves the box above the walls (the water surface) sees open water (infinite range). Albedo comes from two
 mip-mapped textures, one for the floor and one for the walls, so grazing views of far tiles are filtered instead
-of aliasing. Besides the tiles' own tone variation, low-frequency stains and a few pale patches are all that tells
+of aliasing. Besides each tile's shade and speckle, low-frequency stains and a few pale patches are all that tells
 one stretch of tiles from another.
 """
 
@@ -31,7 +31,7 @@ class TiledPool:
     half_x: float
     half_y: float
     floor_levels: list[np.ndarray]  # over the floor: texel (i, j) at (x, y) = (j + 0.5, i + 0.5) * TEXEL_M - half
-    wall_levels: list[np.ndarray]  # texture over a wall: columns along the wall, rows from the top edge down
+    wall_levels: list[np.ndarray]  # over the four walls unrolled: columns along them, rows from the top edge down
 
 
 def _tiles(rng: np.random.Generator, width_m: float, height_m: float, tile_m: float) -> np.ndarray:
@@ -92,7 +92,7 @@ def render_pool(pool: TiledPool, rays: np.ndarray, T_world_cam: np.ndarray):
     fy = ((o[1] + t_plane * d[..., 1] + pool.half_y) / TEXEL_M - 0.5).astype(np.float32)
     rgb = _sample_mipmapped(pool.floor_levels, fx, fy)
 
-    # wall texture: the coordinate along the unrolled walls (x+ , y+, x-, y-) and the depth below the top edge
+    # wall texture: the coordinate along the unrolled walls (x+, y+, x-, y-) and the depth below the top edge
     x, y = o[0] + t_wall * d[..., 0], o[1] + t_wall * d[..., 1]
     hx, hy = pool.half_x, pool.half_y
     along = np.where(t_x <= t_y,
