@@ -41,6 +41,7 @@ from ruslam.data.synthetic_sequence import (
     texture_pyramid,
 )
 from ruslam.data.tiled_pool import make_pool, render_pool
+from ruslam.errors import InputError
 
 VERSION = 1  # bump when rendering changes, so stale caches are regenerated
 MAX_INCIDENCE_DEG = 85.0  # rays nearer the horizon see open water (background light), not the floor
@@ -81,19 +82,25 @@ class SurveyConfig:
 
     def __post_init__(self):
         max_pitch = 80 if self.scene == "pool" else 60  # a seafloor ray-cast needs every ray pointing down
-        checks = [(self.scene in ("seafloor", "pool"), "scene must be 'seafloor' or 'pool'"),
-                  (0 <= self.pitch_deg <= max_pitch, f"pitch_deg must be within 0-{max_pitch}"),
-                  (self.tile_m > 0, "tile_m must be > 0"),
-                  (self.altitude > 0 and self.step > 0, "altitude and step must be > 0"),
-                  (0 < self.turn_deg <= 45, "turn_deg must be within (0, 45] degrees per frame"),
-                  (min(self.straights) >= 0 and len(self.straights) == 2, "straights must be two frame counts >= 0"),
-                  (self.laps > 0 and (self.frames is None or self.frames >= 2), "laps > 0 and frames >= 2"),
-                  (self.contrast > 0 and self.density >= 0, "contrast must be > 0 and density >= 0"),
-                  (self.width >= 32 and self.height >= 32 and 10 < self.hfov_deg < 150, "camera size/fov"),
-                  (self.fps > 0, "fps must be > 0")]
+        checks = [(self.scene in ("seafloor", "pool"), f"scene must be 'seafloor' or 'pool', got {self.scene!r}"),
+                  (0 <= self.pitch_deg <= max_pitch, f"pitch_deg must be within 0-{max_pitch}, got {self.pitch_deg}"),
+                  (self.tile_m > 0, f"tile_m must be > 0, got {self.tile_m}"),
+                  (self.altitude > 0 and self.step > 0,
+                   f"altitude and step must be > 0, got {self.altitude} and {self.step}"),
+                  (0 < self.turn_deg <= 45, f"turn_deg must be within (0, 45] degrees per frame, got {self.turn_deg}"),
+                  (min(self.straights) >= 0 and len(self.straights) == 2,
+                   f"straights must be two frame counts >= 0, got {self.straights}"),
+                  (self.laps > 0 and (self.frames is None or self.frames >= 2),
+                   f"laps must be > 0 and frames >= 2, got {self.laps} and {self.frames}"),
+                  (self.contrast > 0 and self.density >= 0,
+                   f"contrast must be > 0 and density >= 0, got {self.contrast} and {self.density}"),
+                  (self.width >= 32 and self.height >= 32 and 10 < self.hfov_deg < 150,
+                   f"the camera must be at least 32x32 px with a field of view within (10, 150) degrees, got "
+                   f"{self.width}x{self.height} px and {self.hfov_deg}"),
+                  (self.fps > 0, f"fps must be > 0, got {self.fps}")]
         for ok, what in checks:
             if not ok:
-                raise ValueError(f"Robustness sequence: {what}; got {asdict(self)}.")
+                raise InputError(f"Robustness sequence: {what}.")
         if self.water is not None:
             from ruslam.data.water import check_water_type  # noqa: PLC0415
 
@@ -255,7 +262,7 @@ def robustness_sequence(name: str = "survey", cache_dir: str | Path | None = Non
     ground truth stays whole)."""
     unknown = sorted(set(knobs) - set(SurveyConfig.__dataclass_fields__))
     if unknown:
-        raise ValueError(f"Robustness variant {name!r}: unknown knob(s) {unknown}; expected fields of "
+        raise InputError(f"Robustness variant {name!r}: unknown knob(s) {unknown}; expected fields of "
                          f"SurveyConfig: {sorted(SurveyConfig.__dataclass_fields__)}.")
     as_tuple = {k: tuple(v) for k, v in knobs.items() if not isinstance(v, str) and hasattr(v, "__len__")}
     cfg = SurveyConfig(**{**knobs, **as_tuple})  # lists from YAML -> tuples (hashable, same cache key)
@@ -267,6 +274,6 @@ def robustness_sequence(name: str = "survey", cache_dir: str | Path | None = Non
     if not drop:
         return seq
     if not drop < set(range(len(seq))):
-        raise ValueError(f"Robustness variant {name!r}: dropped frames {sorted(drop)} must lie within 0-{len(seq) - 1} "
+        raise InputError(f"Robustness variant {name!r}: dropped frames {sorted(drop)} must lie within 0-{len(seq) - 1} "
                          "and leave frames.")
     return seq.subset(i for i in range(len(seq)) if i not in drop)
