@@ -144,10 +144,8 @@ class Tracker:
                     return True
             elif self.state == "ok":
                 ok = self._track_frame(frame)
-            elif self._relocalize(frame, self.map):
-                ok = self._track_local_map(frame)
             else:
-                ok = False
+                ok = self._relocalize(frame, self.map) and self._track_local_map(frame)
             bridged = bridged or (not ok and self._bridge(frame))
             if not ok and not bridged:
                 self._lost(frame)
