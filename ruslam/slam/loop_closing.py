@@ -1,15 +1,15 @@
 """Loop closing by global descriptors (paper 3.4).
 
-Keyframes' global descriptors live in one matrix; a query scores them all with eq. 9,
-``score = 1 - ||a - b||`` of the L2-normalised vectors, as one matrix product (``||a-b||^2 = 2 - 2 a.b``).
-Candidates are the top-k above a threshold (the larger of a fixed floor and the lowest score of the keyframe's own
-covisible neighbours, as ORB-SLAM does with DBoW2), excluding those neighbours; a candidate must be consistent over
-consecutive keyframes, then pass geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for
-stereo, then a guided search; the learned pair matcher adds matches where kNN finds too few, only when those few
-already agree on one similarity) and a predicted correction that must lower the map's robust reprojection cost
-(`_lowers_residuals`); the loop is corrected by propagating the similarity to the covisible group,
-fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point
-with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
+Keyframes' global descriptors live in one matrix; a query scores them all with eq. 9, ``score = 1 - ||a - b||`` of
+the L2-normalised vectors, as one matrix product (``||a-b||^2 = 2 - 2 a.b``). Candidates are the top-k above a
+threshold (the larger of a fixed floor and the lowest score of the keyframe's own covisible neighbours, as ORB-SLAM
+does with DBoW2), excluding those neighbours; a candidate must be consistent over consecutive keyframes, then pass
+geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for stereo, then a guided search; the
+learned pair matcher adds matches where kNN finds too few, only when those few already agree on one similarity); the
+best-scoring candidate that verifies is closed when its predicted correction lowers the map's robust reprojection
+cost (`_lowers_residuals`): the loop is corrected by propagating the similarity to the covisible group, fusing
+duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point with its
+reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
 
 Map merging (ORB-SLAM3's Atlas): while the Atlas holds inactive maps, every new keyframe of the active map is also
 checked against the last keyframes of each inactive map (the place where tracking was lost) and, with a global
@@ -27,12 +27,13 @@ import numpy as np
 
 from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
-from ruslam.slam.bundle_adjustment import robust_cost
+from ruslam.slam.bundle_adjustment import bundle_adjustment, robust_cost
 from ruslam.slam.geometry import pose_matrix, sim3_ransac
 from ruslam.slam.map import KeyFrame, Map, inverse_pose, transform, update_normals
 from ruslam.slam.optimization import pose_graph_optimization
 
 log = logging.getLogger(__name__)
+STRUCTURE_ITERATIONS = 3  # Levenberg-Marquardt steps of the points (poses held) in the residual check
 
 
 @dataclass
@@ -134,10 +135,11 @@ class LoopCloser:
         with self.atlas.lock:
             current = not kf.is_bad and _map_of(kf) is self.map
             if current and self.cfg.enabled and kf.global_descriptor is not None:
-                for cand in self._detect(kf):
+                for cand in self._detect(kf):  # the best-scoring candidate that verifies, if it lowers the cost
                     found = self._verify(kf, cand)
-                    if found is not None and self._lowers_residuals(kf, cand, found[0], found[2]):
-                        self._correct(kf, cand, *found[:2])
+                    if found is not None:
+                        if self._lowers_residuals(kf, cand, found[0], found[2]):
+                            self._correct(kf, cand, *found[:2])
                         break
             if current and self.cfg.merge and self.atlas.inactive():
                 for cand in self._merge_candidates(kf):
@@ -298,9 +300,10 @@ class LoopCloser:
                           matches: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the correction lowers the robust reprojection cost of the map's observations plus the loop's
         matches, predicted before anything changes: the essential graph solved on the current graph (the loop's
-        keyframes linked as fusing their points would link them), every point moved with its reference keyframe.
-        A true loop pays for its drift with small strains along the graph; a false one (repetitive texture, a
-        look-alike place) bends the map and raises the cost."""
+        keyframes linked as fusing their points would link them), every point moved with its reference keyframe,
+        then the points re-estimated for each side's poses (`_structure_cost`). A true loop pays for its drift with
+        small strains along the graph; a false one (repetitive texture, a look-alike place) bends the map and raises
+        the cost."""
         corrected = self._propagated(kf, cand, S12)
         loop_group = {cand, *self.map.neighbours(cand, 10)} - set(corrected)  # linked once the points are fused
         links = {k: loop_group for k in corrected}
@@ -328,13 +331,20 @@ class LoopCloser:
         X_after = np.einsum("nij,nj->ni", move[:, :3, :3], X) + move[:, :3, 3]
         order = np.argsort(pose, kind="stable")  # the BA's observation layout: sorted by pose
         obs = (pose[order], inverse[order], uv[order], np.zeros(len(pose), bool))
-        every = np.ones(len(pose), bool)
-        cost_before = robust_cost(before_poses, X, obs, every, kf.K, sigma=self.mapper.sigma)
-        cost_after = robust_cost(out, X_after, obs, every, kf.K, sigma=self.mapper.sigma)
+        cost_before = self._structure_cost(before_poses, X, obs, kf.K)
+        cost_after = self._structure_cost(np.stack(out), X_after, obs, kf.K)
         if cost_after >= cost_before:
             log.info("Loop %s <-> %s refused: the correction raises the reprojection cost (%.0f -> %.0f).", kf,
                      cand, cost_before, cost_after)
         return cost_after < cost_before
+
+    def _structure_cost(self, poses: np.ndarray, X: np.ndarray, obs, K: np.ndarray) -> float:
+        """The robust reprojection cost once the points are re-estimated for these poses (held): a correction is
+        judged by the structure it allows, not by points dragged rigidly with their reference keyframes (that
+        charged a lap's 4x scale drift for the strain of its own correction)."""
+        _, X, _ = bundle_adjustment(poses, np.ones(len(poses), bool), X, obs[0], obs[1], obs[2], K,
+                                    iterations=(STRUCTURE_ITERATIONS,), sigma=self.mapper.sigma, solver="schur")
+        return robust_cost(poses, X, obs, np.ones(len(obs[0]), bool), K, sigma=self.mapper.sigma)
 
     def _optimize_essential_graph(self, kf, cand, before, corrected, corrected_by, new_links) -> None:
         kfs, idx, initial, odometry, out = self._essential_graph(kf, cand, corrected, before, new_links)
