@@ -340,8 +340,8 @@ class LoopCloser:
 
     def _structure_cost(self, poses: np.ndarray, X: np.ndarray, obs, K: np.ndarray) -> float:
         """The robust reprojection cost once the points are re-estimated for these poses (held): a correction is
-        judged by the structure it allows, not by points dragged rigidly with their reference keyframes (that
-        charged a lap's 4x scale drift for the strain of its own correction)."""
+        judged by the structure it allows; points dragged rigidly with their reference keyframes would charge a large
+        drift's correction (a lap's 4x scale on the tiled pool) for strain the structure absorbs."""
         _, X, _ = bundle_adjustment(poses, np.ones(len(poses), bool), X, obs[0], obs[1], obs[2], K,
                                     iterations=(STRUCTURE_ITERATIONS,), sigma=self.mapper.sigma, solver="schur")
         return robust_cost(poses, X, obs, np.ones(len(obs[0]), bool), K, sigma=self.mapper.sigma)
