@@ -332,7 +332,7 @@ class LoopCloser:
         order = np.argsort(pose, kind="stable")  # the BA's observation layout: sorted by pose
         obs = (pose[order], inverse[order], uv[order], np.zeros(len(pose), bool))
         cost_before = self._structure_cost(before_poses, X, obs, kf.K)
-        cost_after = self._structure_cost(np.stack(out), X_after, obs, kf.K)
+        cost_after = self._structure_cost(out, X_after, obs, kf.K)
         if cost_after >= cost_before:
             log.info("Loop %s <-> %s refused: the correction raises the reprojection cost (%.0f -> %.0f).", kf,
                      cand, cost_before, cost_after)
