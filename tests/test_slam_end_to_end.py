@@ -225,8 +225,8 @@ def test_uwnet_keeps_its_scale_along_the_tiled_lap(cache):
     """DEV `pool_s3` from frame 2, loop closing off: 3 cm a frame over 3.5 cm tiles, so every corner has a look-alike
     one tile ahead, seen from further away. Searched by each point's map descriptor (a medoid of views from further
     back), UWNet's single-scale descriptors preferred that look-alike, whose scale fits the older view, and its steps
-    shrank 8x from frame 30 to the lap's end (9.4 % of the path, measured). Searched by the descriptors of the views
-    nearest in scale, they shrink 1.8x (3.1 %)."""
+    shrank 4.6x from frame 30 to the lap's end (measured). Searched by the descriptors of the views nearest in scale,
+    they shrink 2.1x."""
     from ruslam.data.robustness import robustness_sequence
 
     seq = robustness_sequence("pool_s3", cache_dir=cache, progress=False, seed=3, scene="pool", altitude=0.3,
@@ -244,7 +244,7 @@ def test_uwnet_keeps_its_scale_along_the_tiled_lap(cache):
         return np.linalg.norm(np.diff(xyz[k:k + 16], axis=0), axis=1).sum()
 
     ratios = [steps(path, k) / steps(truth, k) for k in range(28, len(seq) - 15, 15)]
-    assert max(ratios) / min(ratios) <= 3.5
+    assert max(ratios) / min(ratios) <= 3.0
 
 
 def test_one_trajectory_across_dropped_frames_in_a_turn(lap):
