@@ -371,23 +371,3 @@ def test_map_point_descriptor_is_the_least_median_distance_one_and_follows_obser
     store.add_observation(p, kfs[0], 0)  # same count as before, other members {1.1, 5, 0}: lower medians 1.1, 3.9, 1.1
     update_descriptors(store, [p], binary=False)
     assert np.array_equal(store.descriptor[p], descs[2])
-
-
-def test_a_point_is_searched_by_the_descriptor_of_its_view_nearest_in_scale():
-    from ruslam.slam.map import KeyFrame, PointStore, nearest_view_descriptors
-
-    kfs = []
-    for distance in (1.0, 2.0, 4.0):  # keyframes on the z axis looking at the point, descriptor = distance
-        kf = KeyFrame.__new__(KeyFrame)  # what the selection reads (id, T_cw, descriptors) and points
-        kf.id, kf.T_cw = int(distance * 10), np.eye(4)
-        kf.T_cw[2, 3] = distance  # camera centre at z = -distance
-        kf.descriptors, kf.points = np.array([[7.0, 7.0], [distance, distance]], np.float32), np.full(2, -1)
-        kfs.append(kf)
-    store = PointStore()
-    p = store.add(np.zeros(3), np.zeros(2, np.float32), kfs[0])
-    unseen = store.add(np.ones(3), np.full(2, 9.0, np.float32), kfs[0])  # no observation: its own descriptor
-    for kf in kfs:
-        store.add_observation(p, kf, 1)
-    for now, expected in ((0.9, 1.0), (1.9, 2.0), (2.6, 2.0), (2.9, 4.0), (9.0, 4.0)):  # by ratio 2.9 is nearer 4
-        descs = nearest_view_descriptors(store, np.array([p, unseen]), np.array([0.0, 0.0, -now]))
-        assert descs[0].tolist() == [expected, expected] and descs[1].tolist() == [9.0, 9.0]

@@ -286,24 +286,6 @@ def update_descriptors(store: PointStore, ids, binary: bool) -> None:
         store.descriptor[group] = descs[np.arange(len(group)), best]
 
 
-def nearest_view_descriptors(store: PointStore, ids: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Each point's descriptor as the keyframe saw it whose distance to the point is nearest the distance from
-    `centre` (by ratio): a single-scale descriptor matches best at the scale it is seen at."""
-    obs = [(n, kf, i) for n, j in enumerate(ids) for kf, i in store.observations[j].items()]
-    if not obs:
-        return store.descriptor[ids]
-    centres = {kf: kf.center for _, kf, _ in obs}
-    rows = np.array([n for n, _, _ in obs])
-    X = store.position[ids]
-    seen_from = np.linalg.norm(X[rows] - np.array([centres[kf] for _, kf, _ in obs]), axis=1)
-    off = np.abs(np.log(np.maximum(seen_from, 1e-12) / np.maximum(np.linalg.norm(X - centre, axis=1)[rows], 1e-12)))
-    order = np.lexsort((off, rows))  # by point, nearest scale first
-    first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
-    out = store.descriptor[ids].copy()
-    out[rows[first]] = np.array([obs[k][1].descriptors[obs[k][2]] for k in first])
-    return out
-
-
 def _batched_distances(descs: np.ndarray, binary: bool) -> np.ndarray:
     """`descriptor_distances(a, a)` for each [n, D] set of a batch [B, n, D] -> [B, n, n] (float32)."""
     if binary:

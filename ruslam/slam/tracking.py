@@ -1,18 +1,16 @@
 """Tracking (paper 3.3): initialisation, motion model, fallbacks, local-map tracking, keyframes, recovery.
 
-A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide), then the
-local map around the pose this gives; a learned extractor's single-scale descriptors are searched as the views
-nearest in scale saw them (the last frame; the keyframe nearest the frame's distance to each point). When that fails,
-matched by descriptor to the last frame's points (the closest view in a fast turn), then to the reference keyframe's
-(kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window (PnP
-RANSAC: the pose of a fast turn is unknown, so no prior is trusted); each pose these give is a hypothesis that the
-local map must confirm, and one it refuses passes the frame to the next method. Where none of them posed the frame, a
-learned pair matcher (LightGlue) matches the last frame, then the reference keyframe, once more. When all fail, the
-frame is bridged to the last tracked frame by two-view geometry in the same map (monocular); when that fails too the
-tracker is lost: it relocalises against the active map (the latest keyframes and, with a global descriptor,
-retrieval) and tries the bridge again for `lost_frames` frames, then starts a new map in the Atlas (ORB-SLAM3); while
-that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the maps when they meet
-again.
+A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when that
+fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the reference
+keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window
+(PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); each pose these give is a hypothesis that
+the local map must confirm, and one it refuses passes the frame to the next method. Where none of them posed the
+frame, a learned pair matcher (LightGlue) matches the last frame, then the reference keyframe, once more. When all
+fail, the frame is bridged to the last tracked frame by two-view geometry in the same map (monocular); when that
+fails too the tracker is lost: it relocalises against the active map (the latest keyframes and, with a global
+descriptor, retrieval) and tries the bridge again for `lost_frames` frames, then starts a new map in the Atlas
+(ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the
+maps when they meet again.
 
 The Tracker holds no threads: it hands keyframes to `keyframes.insert_keyframe(kf)` and asks `keyframes.idle()`
 (`keyframe_pipeline.py`: inline or queued to a worker thread).
@@ -36,17 +34,7 @@ from ruslam.slam.geometry import (
     step_min_parallax_deg,
     two_view_initialization,
 )
-from ruslam.slam.map import (
-    Frame,
-    KeyFrame,
-    Map,
-    PointStore,
-    inverse_pose,
-    nearest_view_descriptors,
-    scale_translation,
-    transform,
-    update_normals,
-)
+from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
 from ruslam.slam.optimization import optimize_pose
 
 log = logging.getLogger(__name__)
@@ -511,16 +499,13 @@ class Tracker:
             pts = self.store.resolve(self.last.points)
             seen = pts >= 0
             pts = pts[seen]
-            # a single-scale descriptor matches best as the view nearest in scale saw it: the last frame's
-            descriptors = None if self.binary else self.last.descriptors[seen]
             # ORB-SLAM's windows: wider for a point the last frame saw on a coarser pyramid level
             pyramid = 1.0 if self.last.scales is None else self.last.scales[seen]
             for base in (self.cfg.window_radius, 2 * self.cfg.window_radius):
                 frame.T_cw = predicted.copy()  # the wider windows around the prediction, not the failed optimum
                 frame.clear_points()
                 radius = base * pyramid
-                self._search_points(frame, pts, radius, rival_radius=self.cfg.window_rivals * radius,
-                                    descriptors=descriptors)
+                self._search_points(frame, pts, radius, rival_radius=self.cfg.window_rivals * radius)
                 if np.count_nonzero(frame.points >= 0) >= 20 and self._optimize(frame) >= 10:
                     yield f"motion model, {base:g} px windows"
                     break
@@ -613,8 +598,7 @@ class Tracker:
                     local.append(n)
         seen = self.store.seen_by(local)  # up to 40 keyframes' points
         candidates = seen[~np.isin(seen, frame.points)]
-        descriptors = None if self.binary else nearest_view_descriptors(self.store, candidates, frame.center)
-        in_view = self._search_points(frame, candidates, self.cfg.local_map_radius, descriptors=descriptors)
+        in_view = self._search_points(frame, candidates, self.cfg.local_map_radius)
         inliers = self._optimize(frame)
         log.debug("Frame %d: local map, %d inliers of %d matches.", frame.index, inliers,
                   np.count_nonzero(frame.points >= 0))
@@ -625,8 +609,7 @@ class Tracker:
         np.add.at(self.store.found, frame.points[(frame.points >= 0) & ~frame.outliers], 1)
         return True
 
-    def _search_points(self, frame: Frame, points: np.ndarray, radius, rival_radius=None,
-                       descriptors=None) -> np.ndarray:
+    def _search_points(self, frame: Frame, points: np.ndarray, radius, rival_radius=None) -> np.ndarray:
         """Project map points (ids) with frame.T_cw and match them in windows of `radius` px (scalar or per point);
         returns the ids of those in view."""
         if not len(points):
@@ -642,8 +625,7 @@ class Tracker:
         vis = np.nonzero(visible)[0]
         if np.ndim(radius):
             radius, rival_radius = radius[vis], rival_radius if np.ndim(rival_radius) == 0 else rival_radius[vis]
-        descriptors = self.store.descriptor[points] if descriptors is None else descriptors
-        ip, ik = match_in_windows(uv[vis], descriptors[vis], frame.keypoints, frame.descriptors,
+        ip, ik = match_in_windows(uv[vis], self.store.descriptor[points[vis]], frame.keypoints, frame.descriptors,
                                   radius, self.binary, self.window_distance, self.cfg.window_ratio,
                                   available=frame.points < 0, distinct_px=self.noise_radius,
                                   rival_radius=rival_radius)
