@@ -52,13 +52,14 @@ class MapDepthProbe:
     """Wraps `Tracker._track_local_map`: after each frame, its step scale and the depth scale of its tracked points."""
 
     def __init__(self, survey: SurveyConfig, start: int = 0):
-        self.poses = survey_poses(survey)[start:]
+        poses = survey_poses(survey)
+        self.poses = poses[start:]  # indexed like the frames run
         rays = pixel_rays(survey.camera())
         if survey.scene == "pool":
-            pool = make_pool(survey_poses(survey)[:, :2, 3], survey.tile_m, survey.seed)
+            pool = make_pool(poses[:, :2, 3], survey.tile_m, survey.seed)
             self.render = lambda i: render_pool(pool, rays, self.poses[i])[1]
         else:
-            floor = survey_seafloor(survey, survey_poses(survey))
+            floor = survey_seafloor(survey, poses)
             levels = texture_pyramid(floor.texture)
             self.render = lambda i: render(floor, rays, self.poses[i], texture_levels=levels,
                                            max_incidence_deg=MAX_INCIDENCE_DEG)[1]
@@ -144,7 +145,7 @@ def main() -> None:
         drift = scales[-1][1] / scales[0][1] if scales else float("nan")
         print(f"{args.variant} {name}: {len(traj)}/{traj.num_frames} frames posed, {traj.num_keyframes} keyframes, "
               f"scale last/first window {drift:.3f}")
-        print("  scale per 10 frames: " + " ".join(f"{i}:{s:.3f}" for i, s in scales))
+        print("  scale per 10 frames: " + " ".join(f"{i + args.start}:{s:.3f}" for i, s in scales))
         if probe is not None:
             for (i, step, depth, n), wrong in zip(probe.rows, probe.wrong_shares(), strict=True):
                 print(f"  frame {i + args.start:4d}: step scale {step:.3f}  map-depth scale {depth:.3f}  ({n} inliers, "
