@@ -278,3 +278,29 @@ def test_pair_matcher_only_for_knn_matches_that_agree_on_a_similarity():
     lc, new, old = _revisit(12, look_alike=True, pair_matcher_calls=calls)
     assert lc._verify(new, old) is None
     assert calls == []
+
+
+def test_a_correction_that_undoes_the_motion_between_the_loop_keyframes_is_refused():
+    from ruslam.slam.geometry import pose_matrix
+    from ruslam.slam.loop_closing import undoes_the_motion
+    from ruslam.slam.map import inverse_pose
+
+    def yaw(deg):
+        a = np.radians(deg)
+        return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+    def T_cw(centre, heading):
+        return inverse_pose(pose_matrix(yaw(heading), centre))
+
+    # 1 m along x, a 90 deg corner, 1 m along y: keyframes every 0.25 m
+    leg = [T_cw([x, 0, 0], 0) for x in np.linspace(0, 1, 5)] + [T_cw([1, y, 0], 90) for y in np.linspace(0, 1, 5)]
+    path = np.stack(leg)
+    start = leg[0].copy()
+    start[:3] *= 0.9  # a similarity: the loop also rescales
+    assert undoes_the_motion(path, start)  # back at the first corner: the look-alike place
+    drifted = T_cw([1.1, 0.95, 0], 95)  # 0.1 m and 5 deg of drift over 2 m and 90 deg
+    assert not undoes_the_motion(path, drifted)
+    # turning in place: a correction of 5 cm is more than half the distance travelled, but not of the rotation
+    spin = np.stack([T_cw([0, 0, 0], h) for h in range(0, 181, 20)])
+    assert not undoes_the_motion(spin, T_cw([0.05, 0, 0], 175))
+    assert undoes_the_motion(spin, T_cw([0.05, 0, 0], 0))

@@ -6,10 +6,11 @@ threshold (the larger of a fixed floor and the lowest score of the keyframe's ow
 does with DBoW2), excluding those neighbours; a candidate must be consistent over consecutive keyframes, then pass
 geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for stereo, then a guided search; the
 learned pair matcher adds matches where kNN finds too few, only when those few already agree on one similarity); the
-best-scoring candidate that verifies is closed when its predicted correction lowers the map's robust reprojection
-cost (`_lowers_residuals`): the loop is corrected by propagating the similarity to the covisible group, fusing
-duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map point with its
-reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
+best-scoring candidate that verifies is closed when its correction does not undo most of the motion between the two
+keyframes (`undoes_the_motion`: drift is a fraction of the motion) and the predicted correction lowers the map's
+robust reprojection cost (`_lowers_residuals`): the loop is corrected by propagating the similarity to the covisible
+group, fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map
+point with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
 
 Map merging (ORB-SLAM3's Atlas): while the Atlas holds inactive maps, every new keyframe of the active map is also
 checked against the last keyframes of each inactive map (the place where tracking was lost) and, with a global
@@ -138,7 +139,8 @@ class LoopCloser:
                 for cand in self._detect(kf):  # the best-scoring candidate that verifies, if it lowers the cost
                     found = self._verify(kf, cand)
                     if found is not None:
-                        if self._lowers_residuals(kf, cand, found[0], found[2]):
+                        if not self._undoes_the_motion(kf, cand, found[0]) and \
+                                self._lowers_residuals(kf, cand, found[0], found[2]):
                             self._correct(kf, cand, *found[:2])
                         break
             if current and self.cfg.merge and self.atlas.inactive():
@@ -296,6 +298,14 @@ class LoopCloser:
         S_kw = S12 @ cand.T_cw
         return {k: k.T_cw @ inverse_pose(kf.T_cw) @ S_kw for k in [kf, *self.map.neighbours(kf)]}
 
+    def _undoes_the_motion(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray) -> bool:
+        path = sorted((k for k in self.map.keyframes if not k.is_bad and cand.index <= k.index <= kf.index),
+                      key=lambda k: k.index)
+        if undoes_the_motion(np.stack([k.T_cw for k in path]), S12 @ cand.T_cw):
+            log.info("Loop %s <-> %s refused: its correction undoes most of the motion between them.", kf, cand)
+            return True
+        return False
+
     def _lowers_residuals(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray,
                           matches: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the correction lowers the robust reprojection cost of the map's observations plus the loop's
@@ -392,6 +402,25 @@ class LoopCloser:
         out = pose_graph_optimization(initial, np.array(edges), np.stack(rel), [idx[cand]],
                                       similarity=not self.stereo)
         return kfs, idx, initial, odometry, out
+
+
+def undoes_the_motion(path: np.ndarray, S_kw: np.ndarray) -> bool:
+    """Whether a loop's corrected pose S_kw of the last keyframe of `path` (rigid T_cw [n, 4, 4], from the loop's
+    candidate to that keyframe) undoes more than half of the motion along the path, of the rotation turned and of the
+    distance travelled alike. Drift is a fraction of the motion; a correction that large takes a look-alike place (the
+    next corner of a tiled floor, a whole number of tiles away) for this one."""
+    R, t = path[:, :3, :3], path[:, :3, 3]
+    centres = -np.einsum("nji,nj->ni", R, t)
+    travelled = np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()
+    turned = sum(_angle(a @ b.T) for a, b in zip(R[1:], R[:-1], strict=True))
+    s = _scale(S_kw)
+    R_new, centre = S_kw[:3, :3] / s, -(S_kw[:3, :3].T @ S_kw[:3, 3]) / s**2
+    return bool(np.linalg.norm(centre - centres[-1]) > 0.5 * travelled and _angle(R_new @ R[-1].T) > 0.5 * turned)
+
+
+def _angle(R: np.ndarray) -> float:
+    """The angle (radians) of a rotation matrix."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
 def _scale(S: np.ndarray) -> float:
