@@ -235,7 +235,7 @@ def test_uwnet_closes_no_loop_between_two_corners_of_the_tiled_pool(cache):
     result = run(seq, *_grid_setup("uwnet_xfeat"))
     assert result.num_maps == 1 and len(result) == len(seq)
     truth = seq.groundtruth.positions[np.searchsorted(seq.groundtruth.timestamps, seq.timestamps - 1e-6)]
-    assert all(np.linalg.norm(truth[a] - truth[b]) < 0.15 for a, b in result.loops)  # true revisits only
+    assert all(np.linalg.norm(truth[a] - truth[b]) < 0.4 for a, b in result.loops)  # revisits, views overlapping
     assert _ape_fraction(seq, result) <= 0.03
 
 
