@@ -123,7 +123,7 @@ def _best_motion(results, min_parallax_deg, min_points, rotation_ratio=0.5, prio
         prior = np.eye(3) if prior_R is None else prior_R
 
         def off_prior(r):
-            return _rotation_deg(pose_matrix(r[1][:3, :3] @ prior.T, np.zeros(3)))
+            return rotation_deg(r[1][:3, :3] @ prior.T)
 
         close.sort(key=off_prior)
         unclear = not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1])
@@ -139,8 +139,9 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12), -1, 1))))
 
 
-def _rotation_deg(T: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0))))
+def rotation_deg(R: np.ndarray) -> float:
+    """The angle of a rotation matrix (or of a pose's rotation), in degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R[:3, :3]) - 1) / 2, -1.0, 1.0))))
 
 
 def _two_view_model(x1, x2, K, seed, method, iterations, min_parallax_deg, min_points, homography_ratio, sigma,

@@ -29,7 +29,7 @@ import numpy as np
 from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.bundle_adjustment import bundle_adjustment, robust_cost
-from ruslam.slam.geometry import pose_matrix, sim3_ransac
+from ruslam.slam.geometry import pose_matrix, rotation_deg, sim3_ransac
 from ruslam.slam.map import KeyFrame, Map, inverse_pose, transform, update_normals
 from ruslam.slam.optimization import pose_graph_optimization
 
@@ -412,15 +412,10 @@ def undoes_the_motion(path: np.ndarray, S_kw: np.ndarray) -> bool:
     R, t = path[:, :3, :3], path[:, :3, 3]
     centres = -np.einsum("nji,nj->ni", R, t)
     travelled = np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()
-    turned = sum(_angle(a @ b.T) for a, b in zip(R[1:], R[:-1], strict=True))
+    turned = sum(rotation_deg(a @ b.T) for a, b in zip(R[1:], R[:-1], strict=True))
     s = _scale(S_kw)
     R_new, centre = S_kw[:3, :3] / s, -(S_kw[:3, :3].T @ S_kw[:3, 3]) / s**2
-    return bool(np.linalg.norm(centre - centres[-1]) > 0.5 * travelled and _angle(R_new @ R[-1].T) > 0.5 * turned)
-
-
-def _angle(R: np.ndarray) -> float:
-    """The angle (radians) of a rotation matrix."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    return bool(np.linalg.norm(centre - centres[-1]) > 0.5 * travelled and rotation_deg(R_new @ R[-1].T) > 0.5 * turned)
 
 
 def _scale(S: np.ndarray) -> float:
