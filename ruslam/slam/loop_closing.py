@@ -409,13 +409,11 @@ def undoes_the_motion(path: np.ndarray, S_kw: np.ndarray) -> bool:
     candidate to that keyframe) undoes more than half of the motion along the path, of the rotation turned and of the
     distance travelled alike. Drift is a fraction of the motion; a correction that large takes a look-alike place (the
     next corner of a tiled floor, a whole number of tiles away) for this one."""
-    R, t = path[:, :3, :3], path[:, :3, 3]
-    centres = -np.einsum("nji,nj->ni", R, t)
+    R, centres = path[:, :3, :3], np.array([inverse_pose(T)[:3, 3] for T in path])
     travelled = np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()
     turned = sum(rotation_deg(a @ b.T) for a, b in zip(R[1:], R[:-1], strict=True))
-    s = _scale(S_kw)
-    R_new, centre = S_kw[:3, :3] / s, -(S_kw[:3, :3].T @ S_kw[:3, 3]) / s**2
-    return bool(np.linalg.norm(centre - centres[-1]) > 0.5 * travelled and rotation_deg(R_new @ R[-1].T) > 0.5 * turned)
+    shift = np.linalg.norm(inverse_pose(S_kw)[:3, 3] - centres[-1])
+    return bool(shift > 0.5 * travelled and rotation_deg(S_kw[:3, :3] / _scale(S_kw) @ R[-1].T) > 0.5 * turned)
 
 
 def _scale(S: np.ndarray) -> float:
