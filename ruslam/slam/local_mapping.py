@@ -14,7 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
+from ruslam.models.feature_matching import (
+    descriptor_distances,
+    match_in_windows,
+    match_knn_ratio,
+    paired_distances,
+)
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.bundle_adjustment import SOLVERS, bundle_adjustment
 from ruslam.slam.geometry import (
@@ -155,6 +160,8 @@ class LocalMapper:
             a, b = match_knn_ratio(kf.descriptors[i1], n.descriptors[i2], self.binary, self.max_distance, c.ratio,
                                    mutual=True, mask=mask)
             a, b = i1[a], i2[b]
+            keep = self._distinct_from_mapped(kf, n, F, a, b)
+            a, b = a[keep], b[keep]
             X = triangulate(K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b])
             ok = triangulation_mask(X, K, kf.T_cw, kf.keypoints[a], n.K, n.T_cw, n.keypoints[b],
                                     max_error_px=np.sqrt(CHI2_2DOF) * self.sigma, min_parallax_deg=c.min_parallax_deg)
@@ -173,6 +180,26 @@ class LocalMapper:
                 free1[ia] = False
             s.set_normals(np.array(new, np.int64), normals)
             self.recent += new
+
+    def _distinct_from_mapped(self, kf: KeyFrame, n: KeyFrame, F: np.ndarray, a: np.ndarray, b: np.ndarray):
+        """[len(a)] bool: the match kf[a] <-> n[b] of free keypoints also passes the ratio test and the mutual check
+        against the keypoints on its epipolar lines that already observe map points. Repetitive texture (tiles) puts
+        look-alikes on those lines: where the right match is mapped already, a free look-alike would be triangulated
+        at its own depth, and the map's scale would follow it."""
+        keep = np.ones(len(a), bool)
+        if not len(a):
+            return keep
+        best = paired_distances(kf.descriptors[a], n.descriptors[b], self.binary)
+        mapped1, mapped2 = np.nonzero(kf.points >= 0)[0], np.nonzero(n.points >= 0)[0]
+        if len(mapped2):  # a mapped rival of kf[a] in n, within the ratio test's reach
+            d = descriptor_distances(kf.descriptors[a], n.descriptors[mapped2], self.binary)
+            d[~epipolar_mask(F, kf.keypoints[a], n.keypoints[mapped2], self.cfg.epipolar_px)] = np.inf
+            keep &= best < self.cfg.ratio * d.min(axis=1)
+        if len(mapped1):  # a mapped keypoint of kf nearer to n[b] (its mutual nearest neighbour)
+            d = descriptor_distances(kf.descriptors[mapped1], n.descriptors[b], self.binary)
+            d[~epipolar_mask(F, kf.keypoints[mapped1], n.keypoints[b], self.cfg.epipolar_px)] = np.inf
+            keep &= best <= d.min(axis=0)
+        return keep
 
     def _fuse(self, kf: KeyFrame) -> None:
         targets = []
