@@ -113,6 +113,41 @@ def test_candidate_needs_consecutive_consistent_detections():
         assert lc2._detect(q) == []
 
 
+def test_a_loop_verified_by_consecutive_keyframes_closes_without_the_cost_check():
+    """The cost check refuses every candidate here; a place verified by `consistency` keyframes in a row is closed
+    all the same, a place verified once, or by keyframes that a keyframe without a verified loop interrupts, is not."""
+    lc = _loop_closer()
+    place = [keyframe(np.ones(8), i) for i in range(3)]
+    elsewhere = keyframe(-np.ones(8), 3)
+    for k in [*place, elsewhere]:
+        lc.map.add_keyframe(k)
+    for a in place:
+        for b in place:
+            if a is not b:
+                lc.map.covisibility[a][b] = 50
+    closed = []
+    lc._undoes_the_motion = lambda kf, cand, S: False
+    lc._lowers_residuals = lambda kf, cand, S, matches: False
+    lc._correct = lambda kf, cand, S, points: closed.append((kf.index, cand.index))
+    verified = {}  # new keyframe index -> the keyframe it verifies a loop to (none: no loop verified)
+    lc._detect = lambda kf: [verified[kf.index]] if kf.index in verified else []
+    lc._verify = lambda kf, cand: (np.eye(4), np.zeros(0, int), (np.zeros(0, int), np.zeros(0, int)))
+
+    def new_keyframes(loops: dict, first: int):
+        for i in range(first, first + len(loops)):
+            verified.clear()
+            if loops[i] is not None:
+                verified[i] = loops[i]
+            q = keyframe(np.zeros(8), i)
+            lc.map.add_keyframe(q)
+            lc.process(q)
+
+    new_keyframes({10: place[0], 11: elsewhere, 12: place[1], 13: None, 14: place[2], 15: place[0]}, 10)
+    assert closed == []  # never three in a row at one place
+    new_keyframes({16: place[1]}, 16)  # the third in a row at the covisible group: closed
+    assert closed == [(16, place[1].index)]
+
+
 def test_covisible_neighbours_are_not_loop_candidates():
     rng = np.random.default_rng(3)
     lc = _loop_closer(consistency=1)

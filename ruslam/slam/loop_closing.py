@@ -7,10 +7,11 @@ does with DBoW2), excluding those neighbours; a candidate must be consistent ove
 geometric verification (descriptor matches + Sim3 RANSAC for monocular, SE3 for stereo, then a guided search; the
 learned pair matcher adds matches where kNN finds too few, only when those few already agree on one similarity); the
 best-scoring candidate that verifies is closed when its correction does not undo most of the motion between the two
-keyframes (`undoes_the_motion`: drift is a fraction of the motion) and the predicted correction lowers the map's
-robust reprojection cost (`_lowers_residuals`): the loop is corrected by propagating the similarity to the covisible
-group, fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving every map
-point with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
+keyframes (`undoes_the_motion`: drift is a fraction of the motion) and either the predicted correction lowers the
+map's robust reprojection cost (`_lowers_residuals`) or the keyframes just before verified a loop to the same place,
+`consistency` in a row (ORB-SLAM3's three verifications): the loop is corrected by propagating the similarity to the
+covisible group, fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving
+every map point with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
 
 Map merging (ORB-SLAM3's Atlas): while the Atlas holds inactive maps, every new keyframe of the active map is also
 checked against the last keyframes of each inactive map (the place where tracking was lost) and, with a global
@@ -42,7 +43,7 @@ class LoopConfig:
     enabled: bool = True
     top_k: int = 5
     min_score: float = 0.2  # floor of the eq. 9 score (range [-1, 1] for unit vectors)
-    consistency: int = 3  # consecutive keyframes that must agree on a candidate group
+    consistency: int = 3  # consecutive keyframes agreeing on a candidate group; as many verifications close a loop
     min_keyframes: int = 10  # no detection in a map smaller than this
     exclude_recent: int = 10  # never match one of the last keyframes (they are odometry, not loops)
     max_distance_binary: float = 64.0
@@ -125,6 +126,7 @@ class LoopCloser:
         self.database = KeyFrameDatabase()
         self.groups: list[tuple[set[KeyFrame], int]] = []
         self.last_loop_id = -(10**9)
+        self.streak: tuple[set[KeyFrame], int] = (set(), 0)  # the last keyframe's verified loop group, and its run
         self.loops: list[tuple[int, int]] = []  # (frame index of the current keyframe, of the loop keyframe)
         self.merges: list[tuple[int, int]] = []  # (frame index of the active map's keyframe, of the other map's)
 
@@ -136,13 +138,17 @@ class LoopCloser:
         with self.atlas.lock:
             current = not kf.is_bad and _map_of(kf) is self.map
             if current and self.cfg.enabled and kf.global_descriptor is not None:
+                verified = set()
                 for cand in self._detect(kf):  # the best-scoring candidate that verifies, if it lowers the cost
                     found = self._verify(kf, cand)
                     if found is not None:
-                        if not self._undoes_the_motion(kf, cand, found[0]) and \
-                                self._lowers_residuals(kf, cand, found[0], found[2]):
-                            self._correct(kf, cand, *found[:2])
+                        if not self._undoes_the_motion(kf, cand, found[0]):
+                            verified = {cand, *self.map.neighbours(cand)}
+                            if self._repeated(verified) or self._lowers_residuals(kf, cand, found[0], found[2]):
+                                self._correct(kf, cand, *found[:2])
+                                verified = set()
                         break
+                self.streak = (verified, self.streak[1] + 1 if verified & self.streak[0] else int(bool(verified)))
             if current and self.cfg.merge and self.atlas.inactive():
                 for cand in self._merge_candidates(kf):
                     found = self._verify(kf, cand)
@@ -297,6 +303,16 @@ class LoopCloser:
         """The loop's similarity S_kw for kf, carried to its covisible neighbours by their relative poses."""
         S_kw = S12 @ cand.T_cw
         return {k: k.T_cw @ inverse_pose(kf.T_cw) @ S_kw for k in [kf, *self.map.neighbours(kf)]}
+
+    def _repeated(self, group: set[KeyFrame]) -> bool:
+        """Whether the keyframes just before verified a loop to this place too, `consistency` in a row with this one
+        (ORB-SLAM3 closes a loop verified by three consecutive keyframes): a false loop to a look-alike place rarely
+        verifies twice in a row, and a true one after a large drift can fail the cost prediction."""
+        last, run = self.streak
+        if group & last and run + 1 >= self.cfg.consistency:
+            log.info("Loop verified by %d keyframes in a row: closed without the cost check.", run + 1)
+            return True
+        return False
 
     def _undoes_the_motion(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray) -> bool:
         path = sorted((k for k in self.map.keyframes if not k.is_bad and cand.index <= k.index <= kf.index),
