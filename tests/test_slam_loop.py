@@ -80,6 +80,13 @@ def _loop_closer(consistency=3):
     return LoopCloser(Atlas(), None, cfg, binary=False, stereo=False)
 
 
+def _covisible(lc, group):
+    for a in group:
+        for b in group:
+            if a is not b:
+                lc.map.covisibility[a][b] = 50
+
+
 def test_candidate_needs_consecutive_consistent_detections():
     rng = np.random.default_rng(2)
     lc = _loop_closer()
@@ -89,10 +96,7 @@ def test_candidate_needs_consecutive_consistent_detections():
     for k in old + others:
         lc.map.add_keyframe(k)
         lc.database.add(k)
-    for a in old:
-        for b in old:
-            if a is not b:
-                lc.map.covisibility[a][b] = 50
+    _covisible(lc, old)
     found = []
     for i in range(4):  # four new keyframes back at the old place, not covisible with it
         q = keyframe(place + rng.normal(0, 0.2, 256), 100 + i)
@@ -121,10 +125,7 @@ def test_a_loop_verified_by_consecutive_keyframes_closes_without_the_cost_check(
     elsewhere = keyframe(-np.ones(8), 3)
     for k in [*place, elsewhere]:
         lc.map.add_keyframe(k)
-    for a in place:
-        for b in place:
-            if a is not b:
-                lc.map.covisibility[a][b] = 50
+    _covisible(lc, place)
     closed = []
     lc._undoes_the_motion = lambda kf, cand, S: False
     lc._lowers_residuals = lambda kf, cand, S, matches: False
