@@ -139,7 +139,7 @@ class LoopCloser:
             current = not kf.is_bad and _map_of(kf) is self.map
             if current and self.cfg.enabled and kf.global_descriptor is not None:
                 verified = set()
-                for cand in self._detect(kf):  # the best-scoring candidate that verifies, if it lowers the cost
+                for cand in self._detect(kf):  # the best-scoring candidate that verifies (cost check or streak)
                     found = self._verify(kf, cand)
                     if found is not None:
                         if not self._undoes_the_motion(kf, cand, found[0]):
