@@ -85,20 +85,30 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
 
 
 def _triangulated(candidates, K, x1, x2, max_error_px, step):
-    """(good points, T2, X, good mask, parallax) per candidate motion (R, t) with camera 1 at the origin. The
-    parallax is the 50th smallest for a map's first points, the median for a `step` (forward motion leaves the
-    points near the focus of expansion without any)."""
+    """(points it places, T2, X, good mask, parallax) per candidate motion (R, t) with camera 1 at the origin. Good
+    points reproject within `max_error_px` in front of both cameras. The candidates are compared on the matches
+    every one of them sees under more parallax than that error subtends: below it, noise puts a point in front or
+    behind, so under forward motion the true solution loses the points near the focus of expansion while a plane's
+    spurious one, whose rotation lends every point parallax, keeps them. The parallax is the 50th smallest good
+    point's for a map's first points, the median for a `step` (forward motion leaves the points near the focus of
+    expansion without any)."""
     T1 = np.eye(4)
-    results = []
+    undecided_deg = np.rad2deg(max_error_px / K[0, 0])
+    solved, undecided = [], np.zeros(len(x1), bool)
     for R, t in candidates:
         T2 = pose_matrix(R, np.ravel(t) / max(np.linalg.norm(t), 1e-12))
         X = triangulate(K, T1, x1, K, T2, x2)
         good = triangulation_mask(X, K, T1, x1, K, T2, x2, max_error_px=max_error_px, min_parallax_deg=0.0)
         r1, r2 = X, X - inverse_pose(T2)[:3, 3]  # camera 1 sits at the origin
         cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
-        parallax = np.rad2deg(np.arccos(np.clip(np.sort(cos[good])[::-1], -1, 1)))
+        angle = np.rad2deg(np.arccos(np.clip(cos, -1, 1)))
+        undecided |= angle < undecided_deg
+        solved.append((T2, X, good, angle))
+    results = []
+    for T2, X, good, angle in solved:
+        parallax = np.sort(angle[good])
         rank = len(parallax) // 2 if step else min(49, len(parallax) - 1)
-        results.append((int(good.sum()), T2, X, good, parallax[rank] if len(parallax) else 0.0))
+        results.append((int(np.count_nonzero(good & ~undecided)), T2, X, good, parallax[rank] if len(parallax) else 0.0))
     return results
 
 
@@ -109,9 +119,9 @@ def _best_motion(results, min_parallax_deg, min_points, rotation_ratio=0.5, prio
     with little parallax lets E and H triangulate as many points along different translations (ORB on the desk: E's
     180 points, 93 deg from H's 205, which were right)."""
     results = sorted(results, key=lambda r: -r[0])
-    if results[0][0] < min_points:
+    if max(np.count_nonzero(r[3]) for r in results) < min_points:
         return None
-    close = [r for r in results if r[0] > CLOSE * results[0][0]]
+    close = [r for r in results if r[0] >= CLOSE * results[0][0]]
     # a rival counts when it could be taken itself (enough parallax); one along the translation of one of ours is
     # the same motion (H and E both hold it)
     close += [r for r in rivals if r[0] > CLOSE * results[0][0] and r[4] >= min_parallax_deg and
@@ -129,8 +139,8 @@ def _best_motion(results, min_parallax_deg, min_points, rotation_ratio=0.5, prio
         unclear = not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1])
         if unclear or any(close[0] is r for r in rivals):
             return None
-    n_best, T2, X, good, par = close[0]
-    if n_best < min_points or par < min_parallax_deg:
+    _, T2, X, good, par = close[0]
+    if good.sum() < min_points or par < min_parallax_deg:
         return None
     return T2, X, good
 
