@@ -108,7 +108,8 @@ def _triangulated(candidates, K, x1, x2, max_error_px, step):
     for T2, X, good, angle in solved:
         parallax = np.sort(angle[good])
         rank = len(parallax) // 2 if step else min(49, len(parallax) - 1)
-        results.append((int(np.count_nonzero(good & ~undecided)), T2, X, good, parallax[rank] if len(parallax) else 0.0))
+        placed = int(np.count_nonzero(good & ~undecided))
+        results.append((placed, T2, X, good, parallax[rank] if len(parallax) else 0.0))
     return results
 
 
