@@ -85,44 +85,46 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
 
 
 def _triangulated(candidates, K, x1, x2, max_error_px, step):
-    """(points it places, T2, X, good mask, parallax) per candidate motion (R, t) with camera 1 at the origin. Good
-    points reproject within `max_error_px` in front of both cameras. The candidates are compared on the matches
-    every one of them sees under more parallax than that error subtends: below it, noise puts a point in front or
-    behind, so under forward motion the true solution loses the points near the focus of expansion while a plane's
-    spurious one, whose rotation lends every point parallax, keeps them. The parallax is the 50th smallest good
-    point's for a map's first points, the median for a `step` (forward motion leaves the points near the focus of
-    expansion without any)."""
+    """(points it explains, T2, X, good mask, parallax) per candidate motion (R, t) with camera 1 at the origin. Good
+    points reproject within `max_error_px` in front of both cameras; a match is explained when it is good, or
+    reprojects as well but is seen under less parallax than that error subtends, too little to tell in front from
+    behind (ORB-SLAM's CheckRT): under forward motion noise puts the points near the focus of expansion on either
+    side, while a plane's spurious solution, rotating by about the parallax angle, lends them parallax and keeps them
+    all in front. The parallax is the 50th smallest good point's for a map's first points, the median for a `step`
+    (forward motion leaves the points near the focus of expansion without any)."""
     T1 = np.eye(4)
     undecided_deg = np.rad2deg(max_error_px / K[0, 0])
-    solved, undecided = [], np.zeros(len(x1), bool)
+    results = []
     for R, t in candidates:
         T2 = pose_matrix(R, np.ravel(t) / max(np.linalg.norm(t), 1e-12))
         X = triangulate(K, T1, x1, K, T2, x2)
-        good = triangulation_mask(X, K, T1, x1, K, T2, x2, max_error_px=max_error_px, min_parallax_deg=0.0)
+        (u1, z1), (u2, z2) = project(K, T1, X), project(K, T2, X)
+        fits = np.all(np.isfinite(X), axis=1) & (np.sum((u1 - x1) ** 2, 1) < max_error_px**2)
+        fits &= np.sum((u2 - x2) ** 2, 1) < max_error_px**2
+        good = fits & (z1 > 0) & (z2 > 0)
         r1, r2 = X, X - inverse_pose(T2)[:3, 3]  # camera 1 sits at the origin
         cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
         angle = np.rad2deg(np.arccos(np.clip(cos, -1, 1)))
-        undecided |= angle < undecided_deg
-        solved.append((T2, X, good, angle))
-    results = []
-    for T2, X, good, angle in solved:
+        explained = good | (fits & (angle < undecided_deg))
         parallax = np.sort(angle[good])
         rank = len(parallax) // 2 if step else min(49, len(parallax) - 1)
-        placed = int(np.count_nonzero(good & ~undecided))
-        results.append((placed, T2, X, good, parallax[rank] if len(parallax) else 0.0))
-    return results
+        results.append((int(explained.sum()), T2, X, good, parallax[rank] if len(parallax) else 0.0))
+    # of two motions with one rotation and opposite translations (the decompositions' twins), which share the points
+    # without parallax, the one with more points in front
+    return [r for r in results if not any(np.allclose(o[1][:3, :3], r[1][:3, :3]) and o[3].sum() > r[3].sum()
+                                          for o in results)]
 
 
 def _best_motion(results, min_parallax_deg, min_points, rotation_ratio=0.5, prior_R=None, step=False, rivals=()):
-    """Of `_triangulated` results, the motion that triangulates the most good points; when two hypotheses are close,
-    the one nearer the rotation prior (`prior_R`, default none: identity), refused unless clearly nearer for a map's
-    first points. `rivals`: the other model's results, which can only refuse a map's first points: a near-planar view
-    with little parallax lets E and H triangulate as many points along different translations (ORB on the desk: E's
-    180 points, 93 deg from H's 205, which were right)."""
+    """Of `_triangulated` results, the motion that explains the most matches; when two hypotheses are close, the one
+    nearer the rotation prior (`prior_R`, default none: identity) when it is clearly nearer, else for a map's first
+    points the one with clearly the most good points, else none. `rivals`: the other model's results, which can only
+    refuse a map's first points: a near-planar view with little parallax lets E and H triangulate as many points
+    along different translations (ORB on the desk: E's 180 points, 93 deg from H's 205, which were right)."""
     results = sorted(results, key=lambda r: -r[0])
     if max(np.count_nonzero(r[3]) for r in results) < min_points:
         return None
-    close = [r for r in results if r[0] >= CLOSE * results[0][0]]
+    close = [r for r in results if r[0] > CLOSE * results[0][0]]
     # a rival counts when it could be taken itself (enough parallax); one along the translation of one of ours is
     # the same motion (H and E both hold it)
     close += [r for r in rivals if r[0] > CLOSE * results[0][0] and r[4] >= min_parallax_deg and
@@ -130,15 +132,19 @@ def _best_motion(results, min_parallax_deg, min_points, rotation_ratio=0.5, prio
     if len(close) > 1:
         # A plane (a seafloor seen from above) has two exact solutions, the spurious one rotating the camera by
         # about the parallax angle (Faugeras-Lustman): between video frames the one closer to the expected rotation
-        # (none, or the last motion's) is the real one when it is clearly closer; otherwise wait for a better pair.
+        # (none, or the last motion's) is the real one when it is clearly closer; otherwise the one that puts clearly
+        # the most points in front, or wait for a better pair.
         prior = np.eye(3) if prior_R is None else prior_R
 
         def off_prior(r):
             return rotation_deg(r[1][:3, :3] @ prior.T)
 
         close.sort(key=off_prior)
-        unclear = not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1])
-        if unclear or any(close[0] is r for r in rivals):
+        if not step and off_prior(close[0]) > rotation_ratio * off_prior(close[1]):
+            close.sort(key=lambda r: -np.count_nonzero(r[3]))
+            if np.count_nonzero(close[1][3]) > CLOSE * np.count_nonzero(close[0][3]):
+                return None
+        if any(close[0] is r for r in rivals):
             return None
     _, T2, X, good, par = close[0]
     if good.sum() < min_points or par < min_parallax_deg:
