@@ -86,12 +86,14 @@ def _fundamental_score(F, x1, x2, sigma=1.0):
 
 def _triangulated(candidates, K, x1, x2, max_error_px, step):
     """(points it explains, T2, X, good mask, parallax) per candidate motion (R, t) with camera 1 at the origin. Good
-    points reproject within `max_error_px` in front of both cameras; a match is explained when it is good, or
-    reprojects as well but is seen under less parallax than that error subtends, too little to tell in front from
-    behind (ORB-SLAM's CheckRT): under forward motion noise puts the points near the focus of expansion on either
-    side, while a plane's spurious solution, rotating by about the parallax angle, lends them parallax and keeps them
-    all in front. The parallax is the 50th smallest good point's for a map's first points, the median for a `step`
-    (forward motion leaves the points near the focus of expansion without any)."""
+    points reproject within `max_error_px` in front of both cameras. For a map's first points a match is explained
+    when it is good, or reprojects as well but is seen under less parallax than that error subtends, too little to
+    tell in front from behind (ORB-SLAM's CheckRT): under forward motion noise puts the points near the focus of
+    expansion on either side, while a plane's spurious solution, rotating by about the parallax angle, lends them
+    parallax and keeps them all in front. A `step` counts its good points (its close motions go to the last motion's
+    rotation, and more of them made the desk's chained odometry worse). The parallax is the 50th smallest good point's
+    for a map's first points, the median for a step (forward motion leaves the points near the focus of expansion
+    without any)."""
     T1 = np.eye(4)
     undecided_deg = np.rad2deg(max_error_px / K[0, 0])
     results = []
@@ -105,10 +107,12 @@ def _triangulated(candidates, K, x1, x2, max_error_px, step):
         r1, r2 = X, X - inverse_pose(T2)[:3, 3]  # camera 1 sits at the origin
         cos = np.sum(r1 * r2, 1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-12)
         angle = np.rad2deg(np.arccos(np.clip(cos, -1, 1)))
-        explained = good | (fits & (angle < undecided_deg))
+        explained = good if step else good | (fits & (angle < undecided_deg))
         parallax = np.sort(angle[good])
         rank = len(parallax) // 2 if step else min(49, len(parallax) - 1)
         results.append((int(explained.sum()), T2, X, good, parallax[rank] if len(parallax) else 0.0))
+    if step:
+        return results
     # of two motions with one rotation and opposite translations (the decompositions' twins), which share the points
     # without parallax, the one with more points in front
     return [r for r in results if not any(np.allclose(o[1][:3, :3], r[1][:3, :3]) and o[3].sum() > r[3].sum()
