@@ -139,7 +139,7 @@ def test_forward_motion_over_a_floor_never_takes_the_planes_spurious_solution():
 
 
 def _motion_result(rotation_deg, t, points, parallax=5.0):
-    """A triangulated motion hypothesis as `_best_motion` takes it: (points it places, T2, X, good mask, parallax)."""
+    """A triangulated motion hypothesis as `_best_motion` takes it: (points it explains, T2, X, good mask, parallax)."""
     T2 = se3_exp(np.r_[0.0, np.radians(rotation_deg), 0.0, t])
     T2[:3, 3] /= np.linalg.norm(T2[:3, 3])
     return points, T2, np.ones((200, 3)), np.arange(200) < points, parallax
@@ -163,6 +163,17 @@ def test_the_other_models_motion_refuses_an_ambiguous_first_pair(ours, rival, ex
     translations: neither is taken unless ours has the clearly smaller rotation."""
     out = _best_motion(ours, 1.0, 50, rivals=[rival])
     assert (out is None) if expected is None else (out is not None and out[0] is ours[expected][1])
+
+
+@pytest.mark.parametrize(("in_front", "expected"), [(165, 0), (250, None)])
+def test_close_motions_the_rotation_prior_cannot_tell_apart_go_to_clearly_the_most_points_in_front(in_front, expected):
+    """The desk's first pair: the true motion (2.7 deg) and a plane's other solution (3.4 deg) explain 275 and 248
+    matches, but the other puts only 165 in front, the rest seen under too little parallax to count against it."""
+    true, other = _motion_result(2.7, [0.9, 0.1, 0.1], 275, 1.2), _motion_result(3.4, [0.1, 0.9, 0.3], 248, 1.2)
+    true = (*true[:3], np.arange(300) < 275, true[4])
+    other = (*other[:3], np.arange(300) < in_front, other[4])
+    out = _best_motion([other, true], 1.0, 50)
+    assert (out is None) if expected is None else (out is not None and out[0] is true[1])
 
 
 def _matches(T2, seed, inliers, outliers, noise_px, depth):
