@@ -278,13 +278,15 @@ class LoopCloser:
                     corrected_by[j] = k
             k.T_cw = _rigid(corrected[k])
             k.scale /= _scale(corrected[k])
-        previous = {k: set(self.map.neighbours(k)) for k in connected}
+        # the loop's links are the neighbours fusing adds across the loop; one it adds to a keyframe the group already
+        # neighboured (this side of the loop) would pin the correction's step between the group and its own track
+        this_side = set(connected).union(*(self.map.neighbours(k) for k in connected))
         for k in connected:
             self.mapper.fuse_points(k, loop_points, replace_with_new=True)
         new_links = {}
         for k in connected:
             self.map.update_connections(k)
-            new_links[k] = set(self.map.neighbours(k)) - previous[k] - set(connected)
+            new_links[k] = set(self.map.neighbours(k)) - this_side
         kf.loop_edges.add(cand)
         cand.loop_edges.add(kf)
         self._optimize_essential_graph(kf, cand, before, corrected, corrected_by, new_links)
