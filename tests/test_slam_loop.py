@@ -179,14 +179,16 @@ def _observing_keyframe(T_true, T_est, landmarks, descriptors, store, points, in
     return kf
 
 
-def test_loop_correction_removes_drift_and_fuses_duplicates():
-    from ruslam.slam.geometry import pose_matrix
+def _drifted_revisit(rng, before_group=None):
+    """A loop over a plane seen from 2 m: three old keyframes at their true poses (x = -0.3, 0, 0.3) and three of a
+    second pass (x = -0.2, 0.1, 0.4) in a map drifted by a similarity D (scale 1.08, 4 deg, 0.25 m), duplicating the
+    old points; the second pass hangs off the first through one drifted edge. `before_group(...)` may add second-pass
+    keyframes before those three. Returns (loop closer, old, new, T_true, old points)."""
     from ruslam.slam.local_mapping import LocalMapper, MappingConfig
     from ruslam.slam.loop_closing import _rigid
     from ruslam.slam.map import inverse_pose
     from ruslam.slam.optimization import se3_exp
 
-    rng = np.random.default_rng(4)
     landmarks = np.c_[rng.uniform(-2, 2, (400, 2)), rng.uniform(-0.2, 0.2, 400)]
     desc = rng.normal(size=(400, 32)).astype(np.float32)
     desc /= np.linalg.norm(desc, axis=1, keepdims=True)
@@ -195,7 +197,6 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     def T_true(x):
         return inverse_pose(pose_matrix(down, [x, 0.0, 2.0]))
 
-    # the current (second-pass) keyframes live in a drifted map: similarity D (scale 1.08, 4 deg, 0.25 m)
     D = pose_matrix(se3_exp(np.array([0, 0, np.deg2rad(4), 0, 0, 0]))[:3, :3], [0.25, -0.1, 0.05], s=1.08)
     m = Map()
     atlas = Atlas(m)
@@ -210,18 +211,27 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
            for i, x in enumerate([-0.3, 0.0, 0.3])]
     new = [_observing_keyframe(T_true(x), _rigid(T_true(x) @ inverse_pose(D)), landmarks, desc, store, new_pts,
                                10 + i, rng) for i, x in enumerate([-0.2, 0.1, 0.4])]
-    for j in np.r_[old_pts, new_pts]:
+    earlier = [] if before_group is None else before_group(T_true, D, landmarks, desc, store, new_pts, new)
+    for j in range(len(store.observations)):
         if store.observations[j]:
             store.reference[j] = next(iter(store.observations[j]))
             m.points.add(int(j))
-    chain = old + new
+    chain = old + earlier + new
     for k in chain:
         m.add_keyframe(k)
     for a, b in zip(chain[:-1], chain[1:], strict=True):
         b.parent = a  # odometry: the new keyframes hang off the old ones through a drifted edge
-    for group in (old, new):
-        for k in group:
-            m.update_connections(k)
+    for k in chain:
+        m.update_connections(k)
+    return lc, old, new, T_true, old_pts
+
+
+def test_loop_correction_removes_drift_and_fuses_duplicates():
+    from ruslam.slam.geometry import pose_matrix
+    from ruslam.slam.map import inverse_pose
+    from ruslam.slam.optimization import se3_exp
+
+    lc, old, new, T_true, old_pts = _drifted_revisit(np.random.default_rng(4))
 
     def centre_error(kfs):
         return max(np.linalg.norm(inverse_pose(k.T_cw)[:3, 3] - inverse_pose(T_true(x))[:3, 3])
@@ -242,6 +252,53 @@ def test_loop_correction_removes_drift_and_fuses_duplicates():
     # duplicates were fused: the new keyframes now observe the old points
     seen = {j for k in new for j in k.points[k.points >= 0].tolist()}
     assert len(seen & set(old_pts.tolist())) > 0.8 * len(seen)
+
+
+def test_a_link_fusion_adds_on_this_side_of_the_loop_does_not_change_the_correction():
+    """A second-pass keyframe just before the corrected group (covisible with the group's first keyframe only) holds
+    duplicates of points the current keyframe sees, and fusing merges them, which links it to the current keyframe.
+    That link is not one across the loop: measured on the corrected poses it would hold the uncorrected keyframe where
+    it was (on the tiled pool it left a 0.3 m step between the group and the track before it). The correction must be
+    the one made without the merge."""
+    from ruslam.slam.loop_closing import _rigid
+    from ruslam.slam.map import inverse_pose
+
+    def corrected(merge: bool):
+        duplicates = {}
+
+        def before_group(T_true, D, landmarks, desc, store, new_pts, new):
+            seen = [set(k.points.tolist()) for k in new]
+            first_only = [i for i, j in enumerate(new_pts) if j in seen[0] and j not in seen[1] | seen[2]]
+            last = [i for i, j in enumerate(new_pts) if j in seen[2]][:45]  # a weak link (no essential-graph edge)
+            own = [store.add(D[:3, :3] @ landmarks[i] + D[:3, 3], desc[i], new[0]) for i in last]
+            T = T_true(-0.6)
+            kf = _observing_keyframe(T, _rigid(T @ inverse_pose(D)), landmarks[first_only + last],
+                                     desc[first_only + last], store, np.r_[new_pts[first_only], own], 9,
+                                     np.random.default_rng(0))
+            duplicates.update({j: new_pts[i] for i, j in zip(last, own, strict=True) if store.observations[j]})
+            return [kf]
+
+        lc, old, new, _, _ = _drifted_revisit(np.random.default_rng(4), before_group)
+        earlier = next(k for k in lc.map.keyframes if k.index == 9)
+        assert earlier not in lc.map.neighbours(new[-1]) and earlier in lc.map.neighbours(new[0])
+        assert len(duplicates) >= 20
+        fuse = lc.mapper.fuse_points
+
+        def fuse_and_merge(kf, points, **kw):
+            out = fuse(kf, points, **kw)
+            for dup, point in list(duplicates.items()):  # the duplicates merged
+                lc.map.replace_point(dup, int(lc.atlas.store.resolve(np.array([point]))[0]))
+                del duplicates[dup]
+            return out
+
+        if merge:
+            lc.mapper.fuse_points = fuse_and_merge
+        S12, loop_points, _ = lc._verify(new[-1], old[1])
+        lc._correct(new[-1], old[1], S12, loop_points)
+        assert (earlier in lc.map.neighbours(new[-1])) == merge  # the link fusion added
+        return earlier.T_cw
+
+    assert np.allclose(corrected(merge=True), corrected(merge=False), atol=1e-9)
 
 
 def _revisit(matching: int, look_alike: bool, pair_matcher_calls: list):
