@@ -241,7 +241,7 @@ def test_xfeat_keeps_most_of_its_scale_around_the_pool_lap_without_loops(cache):
 
 
 def test_xfeat_closes_the_pool_lap_without_a_step_at_the_corrected_group(cache):
-    """TEST `pool`: XFeat's revisit (frame 149 to frame 5) closes after its steps shrank 2.5x along the lap. Fusing
+    """TEST `pool`: XFeat's revisit (frame 149 to frame 5) closes after its steps shrank 2.2x along the lap. Fusing
     the loop's points linked a keyframe just before the corrected group to it; taken as a loop link, measured on the
     corrected poses, it held that keyframe in place, and the correction left a 0.32 m step between two frames 3 cm
     apart (10.5x the true step; 1.80 % of the path, measured). Not a loop link: every step within 1.9x, 0.39 %."""
