@@ -7,7 +7,6 @@ from ruslam.models.feature_matching import descriptor_distances, match_in_window
 from ruslam.slam.geometry import (
     _best_motion,
     epipolar_mask,
-    essential_motion,
     fundamental_from_poses,
     pose_matrix,
     project,
@@ -224,14 +223,6 @@ def test_initialization_from_a_hundred_noisy_points_finds_the_motion():
         out = two_view_initialization(*_matches(T2, seed, 100, 30, 1.0, (3, 8)), K, seed=seed)
         found += out is not None and _errors_deg(out[0], T2)[1] < 10
     assert found >= 14
-
-
-def test_essential_motion_is_the_second_views_pose_relative_to_the_first():
-    T2 = se3_exp(np.array([0.0, 0.087, 0.0, -0.5, 0.05, 0.1]))
-    x1, x2 = _matches(T2, 0, 150, 50, 0.5, (3, 6))
-    rotation_error, direction_error = _errors_deg(essential_motion(x1, x2, K), T2)
-    assert rotation_error < 1 and direction_error < 5  # its inverse: 10 deg and 180 deg off
-    assert essential_motion(x1[:7], x2[:7], K) is None
 
 
 def _turn_with_outliers(seed):

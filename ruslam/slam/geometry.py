@@ -239,23 +239,6 @@ def two_view_initialization(
     return T2, X, good, model
 
 
-def essential_motion(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, seed: int = 0, sigma: float = 1.0):
-    """The relative pose T_21 (unit translation) of matches x1 <-> x2 from their essential matrix (RANSAC at `sigma`
-    px), or None."""
-    if len(x1) < 8:
-        return None
-    x1, x2 = np.asarray(x1, np.float64), np.asarray(x2, np.float64)
-    cv2.setRNGSeed(seed)
-    try:
-        E, mask = cv2.findEssentialMat(x1, x2, K, cv2.RANSAC, 0.999, sigma)
-    except cv2.error:  # the 5-point polynomial degenerates on exact pure rotations
-        return None
-    if E is None or mask is None or mask.sum() < 8:
-        return None
-    _, R, t, _ = cv2.recoverPose(E[:3], x1, x2, K, mask=mask)
-    return pose_matrix(R, t)
-
-
 def interpolate_pose(T1: np.ndarray, T2: np.ndarray, a: float) -> np.ndarray:
     """The pose `a` of the way from T1 to T2, on SE(3)."""
     step = gtsam.Pose3.Logmap(gtsam.Pose3(T2 @ inverse_pose(T1)))

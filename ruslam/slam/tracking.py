@@ -4,9 +4,7 @@ A frame is first searched in windows around the constant-velocity prediction (th
 fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the reference
 keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window
 (PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); each pose these give is a hypothesis that
-the local map must confirm, and one it refuses passes the frame to the next method. A monocular fallback's pose also
-fits the epipolar geometry of its matches to the last frame, which the map's relief alone may not hold (a turn taken
-for sideways travel). Where none of them posed the
+the local map must confirm, and one it refuses passes the frame to the next method. Where none of them posed the
 frame, a learned pair matcher (LightGlue) matches the last frame, then the reference keyframe, once more. When all
 fail, the frame is bridged to the last tracked frame by two-view geometry in the same map (monocular); when that
 fails too the tracker is lost: it relocalises against the active map (the latest keyframes and, with a global
@@ -26,20 +24,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ruslam.models.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
+from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.geometry import (
-    CHI2_1DOF,
     CHI2_2DOF,
     epipolar_mask,
-    essential_motion,
     fundamental_from_poses,
     solve_pnp_ransac,
     step_min_parallax_deg,
     two_view_initialization,
 )
 from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
-from ruslam.slam.optimization import optimize_pose, sampson
+from ruslam.slam.optimization import optimize_pose
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +78,6 @@ class TrackingConfig:
     bridge: bool = True  # lost: the motion from the last tracked frame by two-view geometry, in the same map
     local_map_fallback: bool = True  # last fallback: the local map by descriptor + PnP RANSAC
     last_frame_fallback: bool = True  # first fallback: the last frame's points by descriptor (fast turns)
-    two_view_constraints: bool = True  # a fallback's pose also fits its epipolar geometry to the last frame
 
 
 class Tracker:
@@ -116,7 +111,6 @@ class Tracker:
         self.untracked: deque[Frame] = deque(maxlen=cfg.max_untracked)  # since the last tracked frame
         # per initialisation: its keyframes (one for stereo) and the untracked frames before and between them
         self.initialisations: list[tuple[list[KeyFrame], list[Frame], list[Frame]]] = []
-        self.two_view: tuple[Frame, np.ndarray, np.ndarray] | None = None  # (frame, last frame's pixels, frame's)
 
     @property
     def map(self) -> Map:
@@ -515,32 +509,12 @@ class Tracker:
                 if np.count_nonzero(frame.points >= 0) >= 20 and self._optimize(frame) >= 10:
                     yield f"motion model, {base:g} px windows"
                     break
-        self.two_view = self._two_view_matches(frame) if self.cfg.two_view_constraints and self.rig is None else None
         if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last, self._match_knn):
             yield "last frame by descriptor"
         if self._track_by_descriptor(frame, self.reference, self._match_knn):
             yield "reference keyframe by descriptor"
         if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
             yield "local map by descriptor"
-
-    def _two_view_matches(self, frame: Frame) -> tuple[Frame, np.ndarray, np.ndarray] | None:
-        """The last frame's and `frame`'s matches on their epipolar geometry: where the motion model missed, they hold
-        a fallback's pose (`_optimize`) to it along with the map, whose relief alone lets a turn pass for sideways
-        travel (TUM's cabinet: a median 3.6 deg off per frame). The essential matrix of the distinctive matches (kNN +
-        ratio; on tiles, mutual nearest neighbours alone fit a look-alike's motion), then every mutual nearest
-        neighbour on it (guided matching)."""
-        prev = self.last
-        sigma = self.sigma if self.binary else self.cfg.init_sigma_float
-        d = descriptor_distances(prev.descriptors, frame.descriptors, self.binary)
-        ia, ib = match_knn_ratio(prev.descriptors, frame.descriptors, self.binary, self.max_distance, self.cfg.ratio,
-                                 distances=d.copy())
-        T21 = essential_motion(prev.keypoints[ia], frame.keypoints[ib], frame.K, self.seed + frame.index, sigma)
-        if T21 is None:
-            return None
-        ia, ib = match_knn_ratio(prev.descriptors, frame.descriptors, self.binary, self.max_distance, 1.0, distances=d)
-        x1, x2 = prev.keypoints[ia], frame.keypoints[ib]
-        keep = sampson(T21, x1, x2, frame.K) ** 2 < CHI2_1DOF * sigma**2
-        return (frame, x1[keep], x2[keep]) if keep.sum() >= 8 else None
 
     def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
         """Last fallback: the local map's points matched by descriptor, no window, pose by PnP RANSAC."""
@@ -667,10 +641,7 @@ class Tracker:
         X = self.store.position[frame.points[idx]]
         uv_r = frame.right[idx] if self.rig is not None and frame.right is not None else None
         K_r, T_c1_c0 = (self.rig[0], inverse_pose(self.rig[1])) if self.rig is not None else (None, None)
-        two_view = self.two_view
-        epipolar = (self.last.T_cw, *two_view[1:]) if two_view is not None and two_view[0] is frame else None
-        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma,
-                               epipolar=epipolar)
+        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma)
         frame.T_cw = T
         frame.outliers[idx[~inl]] = True
         return int(inl.sum())
