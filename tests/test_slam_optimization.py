@@ -6,9 +6,9 @@ import pytest
 from gtsam.symbol_shorthand import L, X
 
 from ruslam.slam.bundle_adjustment import SOLVERS, _reduced_camera_system, bundle_adjustment
-from ruslam.slam.geometry import pose_matrix, project
+from ruslam.slam.geometry import pose_matrix, project, rotation_deg
 from ruslam.slam.map import inverse_pose
-from ruslam.slam.optimization import optimize_pose, pose_graph_optimization, se3_exp
+from ruslam.slam.optimization import _epipolar_terms, optimize_pose, pose_graph_optimization, sampson, se3_exp
 
 K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
 T_C0_C1 = pose_matrix(np.eye(3), [0.2, 0, 0])  # right camera 20 cm to the right
@@ -50,6 +50,64 @@ def test_motion_only_stereo_observations_fix_translation_along_the_ray():
     T_est, inl = optimize_pose(se3_exp(np.array([0, 0, 0, 0.05, -0.05, 0.1])) @ T, Xw, uv, K, uv_r, K,
                                inverse_pose(T_C0_C1))
     assert inl.all() and np.abs(T_est - T).max() < 1e-6
+
+
+def _orbit_pair(seed=0):
+    """A camera that orbits a shallow scene 1.5 m away by 6 deg (TUM's cabinet): points, both views' noisy pixels,
+    the second view's pose and its rotation."""
+    rng = np.random.default_rng(seed)
+    Xw = np.c_[rng.uniform(-1, 1, 300), rng.uniform(-0.75, 0.75, 300), 1.5 + rng.uniform(-0.1, 0.1, 300)]
+    a = np.radians(6)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    centre = np.array([0, 0, 1.5])
+    T2 = pose_matrix(R, centre - R @ centre)
+    uv1, uv2 = project(K, np.eye(4), Xw)[0], project(K, T2, Xw)[0]
+    return Xw, uv1 + rng.normal(0, 0.5, uv1.shape), uv2 + rng.normal(0, 0.5, uv2.shape), T2
+
+
+def test_sampson_distance_is_the_noise_on_true_matches_whatever_the_translations_length():
+    _, uv1, uv2, T2 = _orbit_pair()
+    d = sampson(T2, uv1, uv2, K)
+    assert np.sqrt(np.mean(d**2)) < 1.0  # 0.5 px of noise in each image
+    assert np.allclose(d, sampson(pose_matrix(T2[:3, :3], 3 * T2[:3, 3]), uv1, uv2, K))
+    moved = uv2 + [0.0, 5.0]  # across the horizontal epipolar lines of a pan: off by pixels
+    assert np.median(np.abs(sampson(T2, uv1, moved, K))) > 2.0
+
+
+def test_sampson_jacobian_is_its_central_difference():
+    rng = np.random.default_rng(1)
+    T_prev, T = se3_exp(rng.normal(0, 0.3, 6)), se3_exp(rng.normal(0, 0.3, 6))
+    x1, x2 = rng.uniform(0, 600, (50, 2)), rng.uniform(0, 600, (50, 2))
+    K_skewed = np.array([[400.0, 0, 320], [0, 410.0, 240], [0, 0, 1]])
+    noise = 1.2 ** rng.integers(0, 4, 50)  # pyramid levels
+    e, J = _epipolar_terms(T, (T_prev, x1, x2, noise), K_skewed)
+    assert np.allclose(e[:, 0], sampson(T @ inverse_pose(T_prev), x1, x2, K_skewed) / noise)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-6
+        plus, minus = (sampson(se3_exp(s * d) @ T @ inverse_pose(T_prev), x1, x2, K_skewed) for s in (1, -1))
+        assert np.allclose(J[:, 0, k], (plus - minus) / 2e-6 / noise, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("relief", [0.0, 0.3, 3.0])
+def test_two_view_matches_hold_the_rotation_where_the_maps_relief_is_wrong(relief):
+    """Against a map with the wrong relief, the pose alone trades the orbit's turn for sideways travel; the matches to
+    the first view on their epipolar lines hold the rotation."""
+    Xw, uv1, uv2, T2 = _orbit_pair()
+    flattened = Xw.copy()
+    flattened[:, 2] = 1.5 + relief * (Xw[:, 2] - 1.5)
+    start = se3_exp(np.array([0.02, -0.03, 0.01, 0.03, 0.02, -0.02])) @ T2
+    alone, _ = optimize_pose(start, flattened, uv2, K)
+    both, _ = optimize_pose(start, flattened, uv2, K, epipolar=(np.eye(4), uv1, uv2, np.ones(len(uv1))))
+    error_alone, error_both = (rotation_deg(T[:3, :3].T @ T2[:3, :3]) for T in (alone, both))
+    assert error_alone > 0.8 and error_both < 0.3
+
+
+def test_two_view_term_is_skipped_without_translation():
+    """Starting at the earlier view's pose (no translation, no epipolar geometry) the map alone moves the pose."""
+    Xw, uv1, uv2, T2 = _orbit_pair()
+    T_est, _ = optimize_pose(np.eye(4), Xw, uv2, K, epipolar=(np.eye(4), uv1, uv2, np.ones(len(uv1))))
+    assert rotation_deg(T_est[:3, :3].T @ T2[:3, :3]) < 0.3
 
 
 def _ba_problem(stereo, seed=3):

@@ -38,12 +38,14 @@ def test_orbslam_orb_leaves_no_frame_unusable(cabinet):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, max_ape_share", [("xfeat", None), ("uwnet_xfeat", 0.06)])
+@pytest.mark.parametrize("name, max_ape_share", [("xfeat", 0.08), ("uwnet_xfeat", 0.06)])
 def test_learned_extractors_track_the_whole_cabinet_in_one_map(cabinet, name, max_ape_share):
     """The SLAM as `python evaluate.py task=slam` runs it: LighterGlue (the evaluation's pair matcher) gives
     initialisation and the descriptor fallbacks the matches that nearest neighbours lack on this weakly textured,
-    wide-baseline sequence (XFeat with kNN alone: 7 % of the frames in 3 maps), and the essential matrix initialises
-    from the first two keyframes (F: XFeat from frame 4, UWNet 66 % in 2 maps)."""
+    wide-baseline sequence (XFeat with kNN alone: 7 % of the frames in 3 maps), the essential matrix initialises
+    from the first two keyframes (F: XFeat from frame 4, UWNet 66 % in 2 maps), and the two-view matches to the
+    last frame hold each fallback pose's turn (without them XFeat took the orbit's turn for sideways travel: 10.4-10.8
+    % from keyframes 0, 1 and 3)."""
     from conftest import compose
 
     from ruslam.data.readers import Trajectory
@@ -56,11 +58,6 @@ def test_learned_extractors_track_the_whole_cabinet_in_one_map(cabinet, name, ma
     seq = read_sequence(cabinet)
     result = run(seq, built[name], as_config(slam_config_for(cfg, name)))
     assert result.num_maps == 1 and result.tracked_ratio >= 0.95
-    if max_ape_share is None:
-        # XFeat's APE is the drift of its pan around the cabinet, the orbit's turn taken as sideways travel once the
-        # map's depths spread (measured 10.4-10.8 % from keyframes 0, 1 and 3, 1.9 % from 2): chaotic in the first
-        # keyframes, so it is reported in docs/slam.md, not asserted
-        return
     ape = evaluate_trajectory(Trajectory(result.timestamps, result.poses), seq.groundtruth, "sim3").ape_rmse
-    # measured 3.87 % (3.05-3.38 % from keyframes 1-3); 6 % is the bound the project holds UWNet to
+    # measured XFeat 5.38 % (2.83-5.24 % from keyframes 1-3), UWNet 4.13 %; 6 % is the bound the project holds UWNet to
     assert ape <= max_ape_share * seq.groundtruth.path_length()

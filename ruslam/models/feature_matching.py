@@ -40,20 +40,21 @@ def paired_distances(a: np.ndarray, b: np.ndarray, binary: bool) -> np.ndarray:
 
 def match_knn_ratio(
     desc1: np.ndarray, desc2: np.ndarray, binary: bool, max_distance: float, ratio: float = 0.8,
-    mutual: bool = True, mask: np.ndarray | None = None,
+    mutual: bool = True, mask: np.ndarray | None = None, distances: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i1, i2) of matches desc1[i1] <-> desc2[i2]: 2-NN ratio test, distance gate, optional mutual NN.
 
     `mask` [N1, N2] (bool) restricts the allowed pairs (e.g. an epipolar constraint). Binary descriptors are then
     scored on the masked pairs only (`_match_masked_binary`: the same matches, ~2 % of the pairs in an epipolar
     band); float ones on all pairs (scoring only the masked pairs was slower, bench/triangulation_matching.py).
+    `distances`: their `descriptor_distances`, when already computed (overwritten).
     """
     empty = (np.zeros(0, int), np.zeros(0, int))
     if len(desc1) == 0 or len(desc2) == 0:
         return empty
     if binary and mask is not None:
         return _match_masked_binary(desc1, desc2, max_distance, ratio, mutual, mask)
-    d = descriptor_distances(desc1, desc2, binary)
+    d = descriptor_distances(desc1, desc2, binary) if distances is None else distances
     if mask is not None:
         np.putmask(d, ~mask, np.inf)
     rows = np.arange(len(d))

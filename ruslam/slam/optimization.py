@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from ruslam.slam.geometry import CHI2_2DOF
+from ruslam.slam.geometry import CHI2_1DOF, CHI2_2DOF
 from ruslam.slam.map import inverse_pose, orthonormalize
 
 HUBER_DELTA = float(np.sqrt(CHI2_2DOF))
@@ -90,16 +90,69 @@ def reprojection(T_cw, X_w, uv, K, T_extra=None, jacobians: bool = True):
     return pix - uv, None if J is None else pose_jacobian(Xc, J), z
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[..., 3] -> [..., 3, 3] cross-product matrices."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return out - np.swapaxes(out, -1, -2)
+
+
+def _sampson(F: np.ndarray, h1: np.ndarray, h2: np.ndarray):
+    """Sampson distances [N] of homogeneous pixels h1 <-> h2 [3, N] under F, with the epipolar lines in image 1 and
+    image 2 [3, N] and the denominator (for the Jacobian)."""
+    l2, l1 = F @ h1, F.T @ h2
+    denominator = np.sqrt(l2[0] ** 2 + l2[1] ** 2 + l1[0] ** 2 + l1[1] ** 2 + 1e-300)
+    return (l2[0] * h2[0] + l2[1] * h2[1] + l2[2]) / denominator, l1, l2, denominator
+
+
+def _homogeneous(x: np.ndarray) -> np.ndarray:
+    return np.vstack([np.asarray(x, np.float64).T, np.ones(len(x))])
+
+
+def sampson(T_21: np.ndarray, x1: np.ndarray, x2: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances [N] (px) of matches x1 <-> x2 to the epipolar geometry of the relative pose T_21
+    (camera 1 -> camera 2, both with K); independent of the translation's length."""
+    K_inv = np.linalg.inv(K)
+    F = K_inv.T @ _skew(T_21[:3, 3]) @ T_21[:3, :3] @ K_inv
+    return _sampson(F, _homogeneous(x1), _homogeneous(x2))[0]
+
+
+def _epipolar_terms(T_cw, epipolar, K):
+    """Sampson residuals [N, 1] of `epipolar` = (T_cw of an earlier view, its pixels, this view's pixels, each match's
+    noise in units of sigma), divided by that noise, and their Jacobian w.r.t. a left twist (omega, v) on T_cw [N, 1,
+    6]: the relative pose moves the same way, R -> (I + [omega]x) R and t -> t + omega x t + v, so E = [t]x R moves by
+    [omega x t]x R + [t]x [omega]x R and by [v]x R."""
+    T_prev, x1, x2, noise = epipolar
+    T_rel = T_cw @ inverse_pose(T_prev)
+    R, t = T_rel[:3, :3], T_rel[:3, 3]
+    if not np.linalg.norm(t) > 0:  # no translation, no epipolar geometry (the last pose as a start)
+        return np.zeros((len(x1), 1)), np.zeros((len(x1), 1, 6))
+    K_inv = np.linalg.inv(K)
+    h1, h2 = _homogeneous(x1), _homogeneous(x2)
+    e, l1, l2, denominator = _sampson(K_inv.T @ _skew(t) @ R @ K_inv, h1, h2)
+    axes = _skew(np.eye(3))
+    dE = np.concatenate([_skew(np.cross(np.eye(3), t)) @ R + _skew(t) @ axes @ R, axes @ R])  # [6, 3, 3]
+    dF = K_inv.T @ dE @ K_inv
+    dl2, dl1 = dF @ h1, np.swapaxes(dF, 1, 2) @ h2  # [6, 3, N]: the lines' derivatives
+    d_numerator = dl2[:, 0] * h2[0] + dl2[:, 1] * h2[1] + dl2[:, 2]
+    d_squares = 2 * (l2[0] * dl2[:, 0] + l2[1] * dl2[:, 1] + l1[0] * dl1[:, 0] + l1[1] * dl1[:, 1])
+    J = d_numerator / denominator - e * d_squares / (2 * denominator**2)
+    return (e / noise)[:, None], (J.T / noise[:, None])[:, None, :]
+
+
 def optimize_pose(
     T_cw: np.ndarray, X_w: np.ndarray, uv: np.ndarray, K: np.ndarray,
     uv_right: np.ndarray | None = None, K_right: np.ndarray | None = None, T_c1_c0: np.ndarray | None = None,
     rounds: int = 4, iterations: int = 10, chi2: float = CHI2_2DOF, sigma: float = 1.0,
+    epipolar: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Refine a camera pose against fixed world points (Huber IRLS, ORB-SLAM's 4 rounds of outlier rejection).
 
     `uv_right` [N, 2] (NaN where absent) adds the right-camera observations of a stereo rig (`T_c1_c0` maps
-    camera-0 coordinates to camera 1). `sigma` is the keypoint noise in pixels (the Huber width and the chi2
-    test scale with it). Returns (T_cw, inlier mask [N]).
+    camera-0 coordinates to camera 1). `epipolar` = (T_cw of an earlier view, pixels there, pixels here, each match's
+    noise in units of sigma: a pyramid's scale) adds matches to that view by their Sampson distance (chi2 with 1 dof):
+    two-view constraints on the rotation and the translation's direction. `sigma` is the keypoint noise in pixels (the
+    Huber width and the chi2 test scale with it). Returns (T_cw, inlier mask [N] of the world points).
     """
     delta = HUBER_DELTA * sigma
     chi2 = chi2 * sigma**2
@@ -109,19 +162,22 @@ def optimize_pose(
     has_right = np.zeros(n, bool) if uv_right is None else np.all(np.isfinite(uv_right), axis=1)
     if n < 3:
         return T, np.zeros(n, bool)
+    epipolar_inlier = None if epipolar is None else np.ones(len(epipolar[1]), bool)
     for r in range(rounds):
         robust = r < rounds - 1
         for _ in range(iterations):
             res, J, z = reprojection(T, X_w, uv, K)
-            terms = [(res, J, inlier & (z > 0))]
+            terms = [(res, J, inlier & (z > 0), delta)]
             if has_right.any():
                 rr, Jr, zr = reprojection(T, X_w[has_right], uv_right[has_right], K_right, T_c1_c0)
-                terms.append((rr, Jr, inlier[has_right] & (zr > 0)))
+                terms.append((rr, Jr, inlier[has_right] & (zr > 0), delta))
+            if epipolar is not None:
+                terms.append((*_epipolar_terms(T, epipolar, K), epipolar_inlier, np.sqrt(CHI2_1DOF) * sigma))
             H = np.zeros((6, 6))
             b = np.zeros(6)
-            for e, Je, use in terms:
+            for e, Je, use, huber in terms:
                 err = np.linalg.norm(e, axis=1)
-                w = np.where(err <= delta, 1.0, delta / np.maximum(err, 1e-12)) if robust else 1.0
+                w = np.where(err <= huber, 1.0, huber / np.maximum(err, 1e-12)) if robust else 1.0
                 wJ = (w * use)[:, None, None] * Je
                 H += wJ.reshape(-1, 6).T @ Je.reshape(-1, 6)
                 b += wJ.reshape(-1, 6).T @ e.ravel()
@@ -139,6 +195,9 @@ def optimize_pose(
             e2[has_right] += np.sum(rr**2, 1)
         thresh = np.where(has_right, chi2 * 1.3, chi2)  # ORB-SLAM: 7.815 (3 dof) for stereo, 5.991 for mono
         inlier = (e2 < thresh) & (z > 0)
+        if epipolar is not None:
+            e = sampson(T @ inverse_pose(epipolar[0]), *epipolar[1:3], K) / epipolar[3]
+            epipolar_inlier = e**2 < CHI2_1DOF * sigma**2
         if inlier.sum() < 3:
             break
     return orthonormalize(T), inlier

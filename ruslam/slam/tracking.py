@@ -3,14 +3,15 @@
 A frame is first searched in windows around the constant-velocity prediction (then a window twice as wide); when that
 fails, matched by descriptor to the last frame's points (the closest view in a fast turn), then to the reference
 keyframe's (kNN + ratio, pose from the last one or PnP), then to the whole local map by descriptor without any window
-(PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); each pose these give is a hypothesis that
-the local map must confirm, and one it refuses passes the frame to the next method. Where none of them posed the
-frame, a learned pair matcher (LightGlue) matches the last frame, then the reference keyframe, once more. When all
-fail, the frame is bridged to the last tracked frame by two-view geometry in the same map (monocular); when that
-fails too the tracker is lost: it relocalises against the active map (the latest keyframes and, with a global
-descriptor, retrieval) and tries the bridge again for `lost_frames` frames, then starts a new map in the Atlas
-(ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it lost. Loop closing merges the
-maps when they meet again.
+(PnP RANSAC: the pose of a fast turn is unknown, so no prior is trusted); each pose these give is a hypothesis that the
+local map must confirm, and one it refuses passes the frame to the next method. A monocular fallback's pose also fits
+the epipolar geometry of its matches to the last frame, which a map with the wrong relief does not hold (a turn taken
+for sideways travel). Where none of them posed the frame, a learned pair matcher (LightGlue) matches the last frame,
+then the reference keyframe, once more. When all fail, the frame is bridged to the last tracked frame by two-view
+geometry in the same map (monocular); when that fails too the tracker is lost: it relocalises against the active map
+(the latest keyframes and, with a global descriptor, retrieval) and tries the bridge again for `lost_frames` frames,
+then starts a new map in the Atlas (ORB-SLAM3); while that map initialises it keeps trying to relocalise in the map it
+lost. Loop closing merges the maps when they meet again.
 
 The Tracker holds no threads: it hands keyframes to `keyframes.insert_keyframe(kf)` and asks `keyframes.idle()`
 (`keyframe_pipeline.py`: inline or queued to a worker thread).
@@ -24,9 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ruslam.models.feature_matching import match_in_windows, match_knn_ratio
+from ruslam.models.feature_matching import descriptor_distances, match_in_windows, match_knn_ratio
 from ruslam.slam.atlas import Atlas
 from ruslam.slam.geometry import (
+    CHI2_1DOF,
     CHI2_2DOF,
     epipolar_mask,
     fundamental_from_poses,
@@ -35,7 +37,7 @@ from ruslam.slam.geometry import (
     two_view_initialization,
 )
 from ruslam.slam.map import Frame, KeyFrame, Map, PointStore, inverse_pose, scale_translation, transform, update_normals
-from ruslam.slam.optimization import optimize_pose
+from ruslam.slam.optimization import optimize_pose, sampson
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,7 @@ class TrackingConfig:
     bridge: bool = True  # lost: the motion from the last tracked frame by two-view geometry, in the same map
     local_map_fallback: bool = True  # last fallback: the local map by descriptor + PnP RANSAC
     last_frame_fallback: bool = True  # first fallback: the last frame's points by descriptor (fast turns)
+    two_view_constraints: bool = True  # a fallback's pose also fits its epipolar geometry to the last frame
 
 
 class Tracker:
@@ -111,6 +114,7 @@ class Tracker:
         self.untracked: deque[Frame] = deque(maxlen=cfg.max_untracked)  # since the last tracked frame
         # per initialisation: its keyframes (one for stereo) and the untracked frames before and between them
         self.initialisations: list[tuple[list[KeyFrame], list[Frame], list[Frame]]] = []
+        self.two_view: tuple | None = None  # `_two_view_matches`: a fallback's matches to the last frame
 
     @property
     def map(self) -> Map:
@@ -509,12 +513,38 @@ class Tracker:
                 if np.count_nonzero(frame.points >= 0) >= 20 and self._optimize(frame) >= 10:
                     yield f"motion model, {base:g} px windows"
                     break
+        self.two_view = self._two_view_matches(frame) if self.cfg.two_view_constraints and self.rig is None else None
         if self.cfg.last_frame_fallback and self._track_by_descriptor(frame, self.last, self._match_knn):
             yield "last frame by descriptor"
         if self._track_by_descriptor(frame, self.reference, self._match_knn):
             yield "reference keyframe by descriptor"
         if self.cfg.local_map_fallback and self._track_local_map_by_descriptor(frame):
             yield "local map by descriptor"
+
+    def _two_view_matches(self, frame: Frame) -> tuple | None:
+        """(frame, the last frame's pixels, frame's, their motion T21, each match's noise in sigmas) for the fallbacks'
+        pose optimisation (`_optimize`): where the motion model missed, the map's relief alone let a turn pass for
+        sideways travel (TUM's cabinet: XFeat's poses a median 3.6 deg off per frame). The motion of the distinctive
+        matches (kNN + ratio) as a bridge finds it (H or E, a plane's twin refused by the motion prior; None without the
+        points or the parallax), then every mutual nearest neighbour on its epipolar geometry (guided matching; on tiles
+        mutual neighbours alone fit a look-alike's motion)."""
+        prev = self.last
+        sigma = self.sigma if self.binary else self.cfg.init_sigma_float
+        d = descriptor_distances(prev.descriptors, frame.descriptors, self.binary)
+        ia, ib = match_knn_ratio(prev.descriptors, frame.descriptors, self.binary, self.max_distance, self.cfg.ratio,
+                                 distances=d.copy())
+        prior = self.velocity[:3, :3] if self.velocity is not None else None
+        out = two_view_initialization(prev.keypoints[ia], frame.keypoints[ib], frame.K, self.seed + frame.index,
+                                      step_min_parallax_deg(frame.K, self.sigma), self.cfg.min_inliers, sigma=sigma,
+                                      prior_R=prior, step=True)
+        if out is None:
+            return None
+        T21 = out[0]
+        ia, ib = match_knn_ratio(prev.descriptors, frame.descriptors, self.binary, self.max_distance, 1.0, distances=d)
+        x1, x2 = prev.keypoints[ia], frame.keypoints[ib]
+        noise = np.ones(len(ia)) if frame.scales is None else np.hypot(prev.scales[ia], frame.scales[ib]) / np.sqrt(2)
+        keep = (sampson(T21, x1, x2, frame.K) / noise) ** 2 < CHI2_1DOF * sigma**2  # each at its pyramid levels' noise
+        return (frame, x1[keep], x2[keep], T21, noise[keep]) if keep.sum() >= 8 else None
 
     def _track_local_map_by_descriptor(self, frame: Frame) -> bool:
         """Last fallback: the local map's points matched by descriptor, no window, pose by PnP RANSAC."""
@@ -641,7 +671,16 @@ class Tracker:
         X = self.store.position[frame.points[idx]]
         uv_r = frame.right[idx] if self.rig is not None and frame.right is not None else None
         K_r, T_c1_c0 = (self.rig[0], inverse_pose(self.rig[1])) if self.rig is not None else (None, None)
-        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma)
+        epipolar = None
+        if self.two_view is not None and self.two_view[0] is frame:
+            # the two-view motion (its twin on a plane refused by the motion prior) at the pose's step length: from
+            # PnP's pose the optimisation could settle in the twin, where the map's points on the plane fit too
+            _, x1, x2, T21, noise = self.two_view
+            epipolar = (self.last.T_cw, x1, x2, noise)
+            step = np.linalg.norm((frame.T_cw @ inverse_pose(self.last.T_cw))[:3, 3])
+            frame.T_cw = scale_translation(T21, step / np.linalg.norm(T21[:3, 3])) @ self.last.T_cw
+        T, inl = optimize_pose(frame.T_cw, X, frame.keypoints[idx], frame.K, uv_r, K_r, T_c1_c0, sigma=self.sigma,
+                               epipolar=epipolar)
         frame.T_cw = T
         frame.outliers[idx[~inl]] = True
         return int(inl.sum())
