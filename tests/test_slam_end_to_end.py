@@ -4,8 +4,8 @@ Rendered at 320x240 into a temporary cache: a quarter lap (40 frames, 0.1 m per 
 with frames blacked out in the middle (tracking must come back and stay one trajectory), a full lap (loop
 closure; with a long blackout, a new map that is merged into the first when the path comes back over it) and three
 laps (loop closures must not raise the error).
-Also XFeat with the evaluation's options through a fast turn in turbid water and over low texture (DEV robustness
-variants). All slow: each runs in well under a few minutes on 2 cores.
+Also the extractors with the evaluation's options on robustness variants: a fast turn in turbid water, low texture,
+the tiled pool. All slow: each runs in well under a few minutes on 2 cores.
 """
 
 from __future__ import annotations
@@ -174,43 +174,31 @@ def test_xfeat_keeps_tracking_through_a_fast_turn_in_turbid_water(cache):
     assert _ape_fraction(seq, result) <= 0.01
 
 
-def test_xfeat_keeps_its_scale_over_low_texture(cache):
-    """DEV `lowtex_s4` (contrast 0.38, density 0.28), first 60 frames, loop closing off. XFeat's dense keypoints on
-    low texture come in near-duplicate pairs that share a descriptor: a window ratio test against them rejected most
-    right matches, tracking fell back to PnP on half-wrong matches, and the scale collapsed or held depending on
-    floating-point details (BLAS threads). With duplicates inside the noise radius ignored, the scale must hold
-    for any thread count."""
+@pytest.mark.parametrize("name, knobs, starts", [
+    ("lowtex_s4", dict(seed=4, contrast=0.38, density=0.28, frames=60), (0, 40)),
+    ("lowtex", dict(seed=2, contrast=0.35, density=0.25, frames=90), (5, 75)),
+])
+def test_xfeat_keeps_its_scale_over_low_texture(cache, name, knobs, starts):
+    """XFeat as the evaluation runs it, loop closing off: ten steps late in the run keep the scale of ten early ones.
+    DEV `lowtex_s4`, first 60 frames: XFeat's dense keypoints on low texture come in near-duplicate pairs that share a
+    descriptor; a window ratio test against them rejected most right matches, tracking fell back to PnP on half-wrong
+    matches, and the scale collapsed or held depending on floating-point details (BLAS threads). With duplicates
+    inside the noise radius ignored, the scale must hold for any thread count.
+    TEST `lowtex`, first 90 frames: the motion model misses most frames, so the fallbacks pose them with the two-view
+    terms. Over a near-flat floor the two views' motion has a twin (6 deg of rotation, the translation 90 deg off)
+    that the floor's points fit as well. Optimised from PnP's pose, frames settled in it and the steps shrank: frames
+    75-85 made 0.20x the steps of frames 5-15 (measured). Started from the two-view motion that the motion prior
+    picked, the steps keep their scale."""
     from ruslam.data.robustness import SurveyConfig, robustness_sequence, survey_poses
 
-    knobs = dict(seed=4, contrast=0.38, density=0.28, frames=60)
-    seq = robustness_sequence("lowtex_s4", cache_dir=cache, progress=False, **knobs)
+    seq = robustness_sequence(name, cache_dir=cache, progress=False, **knobs)
     extractor, cfg = _grid_setup("xfeat")
     cfg.loop.enabled = False
     result = run(seq, extractor, cfg)
     assert result.num_maps == 1 and len(result) >= 0.95 * len(seq)
     truth = survey_poses(SurveyConfig(**knobs))[:, :3, 3]
     f, c = result.frame_indices, result.poses[:, :3, 3]
-    scale = [np.linalg.norm(c[k + 10] - c[k]) / np.linalg.norm(truth[f[k + 10]] - truth[f[k]]) for k in (0, 40)]
-    assert 0.8 <= scale[1] / scale[0] <= 1.25
-
-
-def test_xfeat_fallback_poses_keep_the_scale_over_a_flat_low_texture_floor(cache):
-    """TEST `lowtex` (contrast 0.35, density 0.25), first 90 frames, loop closing off: XFeat's motion model misses
-    most frames, so the fallbacks pose them with the two-view terms. Over a near-flat floor the two views' motion has
-    a twin (6 deg of rotation, the translation 90 deg off) that the floor's points fit as well. Optimised from PnP's
-    pose, frames settled in it and the steps shrank: frames 75-85 made 0.20x the steps of frames 5-15 (measured).
-    Started from the two-view motion that the motion prior picked, the steps keep their scale."""
-    from ruslam.data.robustness import SurveyConfig, robustness_sequence, survey_poses
-
-    knobs = dict(seed=2, contrast=0.35, density=0.25, frames=90)
-    seq = robustness_sequence("lowtex", cache_dir=cache, progress=False, **knobs)
-    extractor, cfg = _grid_setup("xfeat")
-    cfg.loop.enabled = False
-    result = run(seq, extractor, cfg)
-    assert result.num_maps == 1 and len(result) >= 0.95 * len(seq)
-    truth = survey_poses(SurveyConfig(**knobs))[:, :3, 3]
-    f, c = result.frame_indices, result.poses[:, :3, 3]
-    scale = [np.linalg.norm(c[k + 10] - c[k]) / np.linalg.norm(truth[f[k + 10]] - truth[f[k]]) for k in (5, 75)]
+    scale = [np.linalg.norm(c[k + 10] - c[k]) / np.linalg.norm(truth[f[k + 10]] - truth[f[k]]) for k in starts]
     assert 0.8 <= scale[1] / scale[0] <= 1.25
 
 

@@ -53,8 +53,8 @@ def test_motion_only_stereo_observations_fix_translation_along_the_ray():
 
 
 def _orbit_pair(seed=0):
-    """A camera that orbits a shallow scene 1.5 m away by 6 deg (TUM's cabinet): points, both views' noisy pixels,
-    the second view's pose and its rotation."""
+    """A camera that orbits a shallow scene 1.5 m away by 6 deg (TUM's cabinet): points, both views' noisy pixels
+    and the second view's pose."""
     rng = np.random.default_rng(seed)
     Xw = np.c_[rng.uniform(-1, 1, 300), rng.uniform(-0.75, 0.75, 300), 1.5 + rng.uniform(-0.1, 0.1, 300)]
     a = np.radians(6)

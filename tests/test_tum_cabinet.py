@@ -44,8 +44,8 @@ def test_learned_extractors_track_the_whole_cabinet_in_one_map(cabinet, name, ma
     initialisation and the descriptor fallbacks the matches that nearest neighbours lack on this weakly textured,
     wide-baseline sequence (XFeat with kNN alone: 7 % of the frames in 3 maps), the essential matrix initialises
     from the first two keyframes (F: XFeat from frame 4, UWNet 66 % in 2 maps), and the two-view matches to the
-    last frame hold each fallback pose's turn (without them XFeat took the orbit's turn for sideways travel: 10.4-10.8
-    % from keyframes 0, 1 and 3)."""
+    last frame hold each fallback pose's turn (without them XFeat took the orbit's turn for sideways travel:
+    10.4-10.8 % from keyframes 0, 1 and 3)."""
     from conftest import compose
 
     from ruslam.data.readers import Trajectory
