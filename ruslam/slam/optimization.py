@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from ruslam.slam.geometry import CHI2_1DOF, CHI2_2DOF
+from ruslam.slam.geometry import CHI2_1DOF, CHI2_2DOF, fundamental_from_poses
 from ruslam.slam.map import inverse_pose, orthonormalize
 
 HUBER_DELTA = float(np.sqrt(CHI2_2DOF))
@@ -112,9 +112,7 @@ def _homogeneous(x: np.ndarray) -> np.ndarray:
 def sampson(T_21: np.ndarray, x1: np.ndarray, x2: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Signed Sampson distances [N] (px) of matches x1 <-> x2 to the epipolar geometry of the relative pose T_21
     (camera 1 -> camera 2, both with K); independent of the translation's length."""
-    K_inv = np.linalg.inv(K)
-    F = K_inv.T @ _skew(T_21[:3, 3]) @ T_21[:3, :3] @ K_inv
-    return _sampson(F, _homogeneous(x1), _homogeneous(x2))[0]
+    return _sampson(fundamental_from_poses(K, K, T_21), _homogeneous(x1), _homogeneous(x2))[0]
 
 
 def _epipolar_terms(T_cw, epipolar, K):
@@ -129,7 +127,7 @@ def _epipolar_terms(T_cw, epipolar, K):
         return np.zeros((len(x1), 1)), np.zeros((len(x1), 1, 6))
     K_inv = np.linalg.inv(K)
     h1, h2 = _homogeneous(x1), _homogeneous(x2)
-    e, l1, l2, denominator = _sampson(K_inv.T @ _skew(t) @ R @ K_inv, h1, h2)
+    e, l1, l2, denominator = _sampson(fundamental_from_poses(K, K, T_rel), h1, h2)
     axes = _skew(np.eye(3))
     dE = np.concatenate([_skew(np.cross(np.eye(3), t)) @ R + _skew(t) @ axes @ R, axes @ R])  # [6, 3, 3]
     dF = K_inv.T @ dE @ K_inv
