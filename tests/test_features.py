@@ -249,7 +249,8 @@ def test_onnx_export_decodes_to_the_module_output(uwnet, tmp_path):
         want = uwnet_native(x)[0]
         dense = uwnet_native.dense(x)
     for name, value in dense.items():
-        if name == "global_descriptor":  # compared as retrieval scores it (see test_uwnet_extractor.py)
+        if name == "global_descriptor":  # unit vectors, compared as retrieval scores them (test_uwnet_extractor.py)
+            assert abs(float(np.linalg.norm(outputs[name])) - 1.0) < 1e-4
             assert float(np.sum(outputs[name] * value.numpy())) > 1 - 1e-4
         else:
             assert np.abs(outputs[name] - value.numpy()).max() < 1e-4, name

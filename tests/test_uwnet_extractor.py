@@ -114,7 +114,7 @@ def test_onnx_export_matches_pytorch_under_onnxruntime(tmp_path, weights):
             # a NetVLAD cluster that got almost no mass is intra-normalised from a residual near its epsilon: its
             # entries are float noise that differs between runtimes and CPUs (up to 2e-4 seen). The descriptor is
             # compared as retrieval scores it: the cosine of the two unit vectors.
-            np.testing.assert_allclose(np.linalg.norm(value, axis=1), 1.0, atol=1e-5)
+            np.testing.assert_allclose(np.linalg.norm(value, axis=1), 1.0, atol=1e-4)
             assert np.all(np.sum(value * ref[name].numpy(), axis=1) > 1 - 1e-4)
         else:
             np.testing.assert_allclose(value, ref[name].numpy(), atol=1e-4, rtol=1e-3)
