@@ -119,7 +119,8 @@ def test_candidate_needs_consecutive_consistent_detections():
 
 def test_a_loop_verified_by_consecutive_keyframes_closes_without_the_cost_check():
     """The cost check refuses every candidate here; a place verified by `consistency` keyframes in a row is closed
-    all the same, a place verified once, or by keyframes that a keyframe without a verified loop interrupts, is not."""
+    all the same, a place verified once, or by keyframes that a keyframe without a verified loop interrupts, is not,
+    nor one whose correction turns the camera beyond half its field of view."""
     lc = _loop_closer()
     place = [keyframe(np.ones(8), i) for i in range(3)]
     elsewhere = keyframe(-np.ones(8), 3)
@@ -146,6 +147,10 @@ def test_a_loop_verified_by_consecutive_keyframes_closes_without_the_cost_check(
     new_keyframes({10: place[0], 11: elsewhere, 12: place[1], 13: None, 14: place[2], 15: place[0]}, 10)
     assert closed == []  # never three in a row at one place
     new_keyframes({16: place[1]}, 16)  # the third in a row at the covisible group: closed
+    assert closed == [(16, place[1].index)]
+    turned = pose_matrix(_yaw(90), np.zeros(3))  # a look-alike after a quarter turn, verified three times in a row
+    lc._verify = lambda kf, cand: (turned, np.zeros(0, int), (np.zeros(0, int), np.zeros(0, int)))
+    new_keyframes({17: place[0], 18: place[1], 19: place[2]}, 17)
     assert closed == [(16, place[1].index)]
 
 
@@ -397,3 +402,21 @@ def test_a_correction_that_undoes_the_motion_between_the_loop_keyframes_is_refus
     spin = np.stack([T_cw([0, 0, 0], h) for h in range(0, 181, 20)])
     assert not undoes_the_motion(spin, T_cw([0.05, 0, 0], 175))
     assert undoes_the_motion(spin, T_cw([0.05, 0, 0], 0))
+
+
+def _yaw(deg):
+    a = np.radians(deg)
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])  # about the camera's y axis
+
+
+def test_a_correction_beyond_half_the_field_of_view_turns_out_of_view():
+    from ruslam.slam.loop_closing import turns_out_of_view
+
+    T = pose_matrix(_yaw(30), np.array([0.2, 0.0, 1.0]))
+    for deg, beyond in [(5, False), (30, False), (40, True), (90, True), (-90, True)]:  # K: 640 px at f 450, 35.4 deg
+        S = pose_matrix(_yaw(deg) @ T[:3, :3], T[:3, 3] + 0.3)
+        S[:3] *= 0.6  # a similarity: the loop also rescales
+        assert turns_out_of_view(T, S, K, (640, 480)) == beyond
+    narrow = K.copy()
+    narrow[0, 0] = 1000.0  # 17.7 deg
+    assert turns_out_of_view(T, pose_matrix(_yaw(25) @ T[:3, :3], T[:3, 3]), narrow, (640, 480))

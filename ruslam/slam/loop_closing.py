@@ -9,7 +9,8 @@ learned pair matcher adds matches where kNN finds too few, only when those few a
 best-scoring candidate that verifies is closed when its correction does not undo most of the motion between the two
 keyframes (`undoes_the_motion`: drift is a fraction of the motion) and either the predicted correction lowers the
 map's robust reprojection cost (`_lowers_residuals`) or the keyframes just before verified a loop to the same place,
-`consistency` in a row (ORB-SLAM3's three verifications): the loop is corrected by propagating the similarity to the
+`consistency` in a row (ORB-SLAM3's three verifications), with a correction that turns the camera by less than half
+its field of view (`turns_out_of_view`): the loop is corrected by propagating the similarity to the
 covisible group, fusing duplicated points, optimising the essential graph (gtsam Similarity3 / Pose3) and moving
 every map point with its reference keyframe. Extractors without a global descriptor (ORB, SIFT) skip loop detection.
 
@@ -144,7 +145,8 @@ class LoopCloser:
                     if found is not None:
                         if not self._undoes_the_motion(kf, cand, found[0]):
                             verified = {cand, *self.map.neighbours(cand)}
-                            if self._repeated(verified) or self._lowers_residuals(kf, cand, found[0], found[2]):
+                            repeated = self._repeated(verified) and not self._turns_out_of_view(kf, cand, found[0])
+                            if repeated or self._lowers_residuals(kf, cand, found[0], found[2]):
                                 self._correct(kf, cand, *found[:2])
                                 verified = set()
                         break
@@ -316,6 +318,13 @@ class LoopCloser:
             return True
         return False
 
+    def _turns_out_of_view(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray) -> bool:
+        if turns_out_of_view(kf.T_cw, S12 @ cand.T_cw, kf.K, kf.image_size):
+            log.info("Loop %s <-> %s not closed without the cost check: its correction turns the camera by more "
+                     "than half its field of view.", kf, cand)
+            return True
+        return False
+
     def _undoes_the_motion(self, kf: KeyFrame, cand: KeyFrame, S12: np.ndarray) -> bool:
         path = sorted((k for k in self.map.keyframes if not k.is_bad and cand.index <= k.index <= kf.index),
                       key=lambda k: k.index)
@@ -432,6 +441,14 @@ def undoes_the_motion(path: np.ndarray, S_kw: np.ndarray) -> bool:
     turned = sum(rotation_deg(a @ b.T) for a, b in zip(R[1:], R[:-1], strict=True))
     shift = np.linalg.norm(inverse_pose(S_kw)[:3, 3] - centres[-1])
     return bool(shift > 0.5 * travelled and rotation_deg(S_kw[:3, :3] / _scale(S_kw) @ R[-1].T) > 0.5 * turned)
+
+
+def turns_out_of_view(T_cw: np.ndarray, S_kw: np.ndarray, K: np.ndarray, image_size: tuple[int, int]) -> bool:
+    """Whether a loop's corrected pose S_kw turns the camera at T_cw by more than half its horizontal field of view.
+    Tracking keeps consecutive views overlapping, so its heading drift stays well inside that; a look-alike place on
+    a symmetric pattern (a tiled floor seen after a 90 or 180 deg turn) asks for the whole turn."""
+    half_fov = np.degrees(np.arctan(0.5 * image_size[0] / K[0, 0]))
+    return rotation_deg(S_kw[:3, :3] / _scale(S_kw) @ T_cw[:3, :3].T) > half_fov
 
 
 def _scale(S: np.ndarray) -> float:
