@@ -20,6 +20,11 @@ def keyframe(g, index=0):
     return KeyFrame(f, next(IDS))
 
 
+def _yaw(deg):
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
 def test_eq9_scores_match_the_definition():
     rng = np.random.default_rng(0)
     vectors = rng.normal(size=(20, 4096)) * rng.uniform(0.5, 3.0, (20, 1))  # unnormalised on purpose
@@ -383,12 +388,8 @@ def test_a_correction_that_undoes_the_motion_between_the_loop_keyframes_is_refus
     from ruslam.slam.loop_closing import undoes_the_motion
     from ruslam.slam.map import inverse_pose
 
-    def yaw(deg):
-        a = np.radians(deg)
-        return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-
     def T_cw(centre, heading):
-        return inverse_pose(pose_matrix(yaw(heading), centre))
+        return inverse_pose(pose_matrix(_yaw(heading), centre))
 
     # 1 m along x, a 90 deg corner, 1 m along y: keyframes every 0.25 m
     leg = [T_cw([x, 0, 0], 0) for x in np.linspace(0, 1, 5)] + [T_cw([1, y, 0], 90) for y in np.linspace(0, 1, 5)]
@@ -402,11 +403,6 @@ def test_a_correction_that_undoes_the_motion_between_the_loop_keyframes_is_refus
     spin = np.stack([T_cw([0, 0, 0], h) for h in range(0, 181, 20)])
     assert not undoes_the_motion(spin, T_cw([0.05, 0, 0], 175))
     assert undoes_the_motion(spin, T_cw([0.05, 0, 0], 0))
-
-
-def _yaw(deg):
-    a = np.radians(deg)
-    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])  # about the camera's y axis
 
 
 def test_a_correction_beyond_half_the_field_of_view_turns_out_of_view():
